@@ -1,0 +1,72 @@
+"""cpsim: a batched driving simulator written as NVIDIA Warp kernels.
+
+Public names are loaded lazily so that ``import cpsim`` stays fast (no Warp
+compilation, no torch import) and registers the Gymnasium environments.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from cpsim.conditions import (
+    CONDITION_FIELDS,
+    NUM_CONDITION_FIELDS,
+    PANEL,
+    PROFILES,
+    normalize_condition,
+    profile,
+    sample_conditions,
+)
+from cpsim.scenario.datatypes import AgentType, RoadType, Scenario, ScenarioError
+
+__version__ = "0.1.0"
+
+# name -> module that defines it (imported on first access)
+_LAZY = {
+    "SimConfig": "cpsim.config",
+    "Simulator": "cpsim.simulator",
+    "Snapshot": "cpsim.simulator",
+    "ObsLayout": "cpsim.observation",
+    "Controller": "cpsim.config",
+    "Outcome": "cpsim.config",
+    "SelfPlayVecEnv": "cpsim.envs.selfplay",
+    "DriveEnv": "cpsim.envs.drive",
+    "render": "cpsim.render",
+    "scenario": "cpsim.scenario",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cpsim' has no attribute {name!r}")
+    mod = importlib.import_module(module)
+    value = mod if module.endswith("." + name) and not hasattr(mod, name) else getattr(mod, name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+def _register_envs() -> None:
+    import gymnasium
+
+    if "cpsim/Drive-v0" not in gymnasium.registry:
+        gymnasium.register(
+            id="cpsim/Drive-v0",
+            entry_point="cpsim.envs.drive:DriveEnv",
+            vector_entry_point="cpsim.envs.drive:DriveVectorEnv",
+            max_episode_steps=None,
+        )
+
+
+_register_envs()
+
+__all__ = [
+    "AgentType", "RoadType", "Scenario", "ScenarioError", "CONDITION_FIELDS",
+    "NUM_CONDITION_FIELDS", "PANEL", "PROFILES", "normalize_condition", "profile",
+    "sample_conditions", *_LAZY,
+]

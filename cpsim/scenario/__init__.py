@@ -1,0 +1,57 @@
+"""Scenarios: the data model, procedural families, WOMD JSON loading and splits.
+
+* :class:`Scenario` / :class:`ScenarioError`: the validated NumPy data model.
+* ``generate(family, seed)``, ``FAMILIES``, ``pool(n, seed, families=None)``: built-in
+  procedural scenarios (``cpsim.scenario.procedural``).
+* ``load(path)``, ``load_dir(path)``, ``convert_dir(src, dst)``: WOMD JSON and the
+  ``.npz`` cache (``cpsim.scenario.womd``).
+* ``interactivity_score``, ``interactive_split``, ``random_split``: BehaviorBench splits
+  (``cpsim.scenario.splits``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from cpsim.scenario.datatypes import (
+    DT,
+    MIN_GOAL_DISTANCE,
+    NUM_STEPS,
+    AgentType,
+    RoadType,
+    Scenario,
+    ScenarioError,
+)
+
+_LAZY = {
+    "generate": "cpsim.scenario.procedural",
+    "pool": "cpsim.scenario.procedural",
+    "FAMILIES": "cpsim.scenario.procedural",
+    "train_pool": "cpsim.scenario.procedural",
+    "eval_pool": "cpsim.scenario.procedural",
+    "load": "cpsim.scenario.womd",
+    "load_dir": "cpsim.scenario.womd",
+    "convert_dir": "cpsim.scenario.womd",
+    "LoadReport": "cpsim.scenario.womd",
+    "interactivity_score": "cpsim.scenario.splits",
+    "interactive_split": "cpsim.scenario.splits",
+    "random_split": "cpsim.scenario.splits",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cpsim.scenario' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+__all__ = ["DT", "MIN_GOAL_DISTANCE", "NUM_STEPS", "AgentType", "RoadType", "Scenario",
+           "ScenarioError", *_LAZY]
