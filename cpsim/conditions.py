@@ -128,4 +128,10 @@ def resolve_condition(spec: str | Sequence[float] | np.ndarray, argument: str = 
             return profile(spec)
         except ValueError as exc:
             raise ValueError(f"{argument}: {exc}") from None
-    return validate_conditions(np.asarray(spec, np.float32).reshape(NUM_CONDITION_FIELDS), argument)
+    vec = np.asarray(spec, np.float32)
+    if vec.shape != (NUM_CONDITION_FIELDS,):
+        raise ValueError(
+            f"{argument}: expected a profile name {sorted(PROFILES)} or a vector of "
+            f"{NUM_CONDITION_FIELDS} values {CONDITION_FIELDS}, got shape {vec.shape}"
+        )
+    return validate_conditions(vec, argument)

@@ -1,0 +1,128 @@
+"""Scenario validation and reward-condition helpers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import cpsim
+from cpsim.conditions import (
+    CONDITION_FIELDS,
+    PANEL,
+    PROFILES,
+    STYLE_MASK,
+    TRAIN_HIGH,
+    TRAIN_LOW,
+    normalize_condition,
+    resolve_condition,
+    sample_conditions,
+    validate_conditions,
+)
+from cpsim.scenario import AgentType, RoadType, Scenario, ScenarioError
+
+
+def make_fields(n: int = 3) -> dict:
+    t = 91
+    xy = np.zeros((n, t, 2), np.float32)
+    xy[:, :, 0] = np.linspace(0, 30, t)[None] + 10 * np.arange(n)[:, None]
+    return dict(
+        id="hand-0",
+        log_xy=xy,
+        log_heading=np.zeros((n, t), np.float32),
+        log_velocity=np.tile(np.array([3.0, 0.0], np.float32), (n, t, 1)),
+        log_valid=np.ones((n, t), bool),
+        goal_xy=xy[:, -1].copy(),
+        sizes=np.tile(np.array([4.5, 2.0], np.float32), (n, 1)),
+        agent_types=np.zeros(n, np.int8),
+        road_points=np.array([[0, 0], [100, 0], [0, 4], [100, 4]], np.float32),
+        road_offsets=np.array([0, 2, 4], np.int32),
+        road_types=np.array([RoadType.LANE, RoadType.ROAD_EDGE], np.int8),
+        ego_index=0,
+    )
+
+
+def test_valid_scenario_derived_fields():
+    s = Scenario(**make_fields())
+    assert s.num_agents == 3 and s.num_roads == 2 and s.num_steps == 91
+    assert s.log_xy.dtype == np.float32 and s.road_offsets.dtype == np.int32
+    np.testing.assert_allclose(s.log_speed, 3.0)
+    assert s.controllable.tolist() == [True, True, True]
+    np.testing.assert_array_equal(s.road(1), [[0, 4], [100, 4]])
+    assert not s.log_xy.flags.writeable  # scenarios are immutable data
+    assert s == Scenario(**make_fields())
+
+
+def test_controllable_excludes_pedestrians_invalid_and_short_goals():
+    f = make_fields(4)
+    f["agent_types"][1] = AgentType.PEDESTRIAN
+    f["log_valid"][2, 0] = False
+    f["goal_xy"][3] = f["log_xy"][3, 0] + 1.0  # 1.4 m < 2 m
+    s = Scenario(**f)
+    assert s.controllable.tolist() == [True, False, False, False]
+
+
+def test_invalid_steps_may_hold_sentinel_coordinates():
+    f = make_fields()
+    f["log_valid"][1, 50:] = False
+    f["log_xy"][1, 50:] = -10000.0
+    f["log_heading"][1, 50:] = np.nan
+    Scenario(**f)  # no error: invalid steps are never read
+
+
+@pytest.mark.parametrize(
+    "mutate, field",
+    [
+        (lambda f: f.update(log_xy=f["log_xy"][:, :90]), "log_xy"),
+        (lambda f: f["log_heading"].__setitem__((0, 3), np.nan), "log_heading"),
+        (lambda f: f["log_velocity"].__setitem__((0, 3, 0), np.inf), "log_velocity"),
+        (lambda f: f["sizes"].__setitem__((1, 0), -1.0), "sizes"),
+        (lambda f: f.update(road_offsets=np.array([0], np.int32), road_types=np.zeros(0, np.int8)), "roads"),
+        (lambda f: f.update(log_valid=np.zeros((3, 91), bool)), "valid"),
+        (lambda f: f.update(ego_index=7), "ego_index"),
+        (lambda f: f.update(goal_xy=np.zeros((2, 2), np.float32)), "goal_xy"),
+        (lambda f: f.update(road_offsets=np.array([0, 1, 5], np.int32)), "road_offsets"),
+    ],
+)
+def test_bad_scenarios_raise_with_field(mutate, field):
+    f = make_fields()
+    f["source"] = "file.json"
+    mutate(f)
+    with pytest.raises(ScenarioError) as err:
+        Scenario(**f)
+    assert isinstance(err.value, ValueError)
+    assert "file.json" in str(err.value) and f"'{field}'" in str(err.value)
+
+
+def test_profiles_and_midpoints():
+    assert set(PANEL) <= set(PROFILES)
+    np.testing.assert_allclose(
+        PROFILES["normal-aggressive"], 0.5 * (PROFILES["normal"] + PROFILES["aggressive"])
+    )
+    assert PROFILES["cautious"][CONDITION_FIELDS.index("goal_speed")] == 5.0
+    assert cpsim.profile("halfway").tolist() == PROFILES["normal-aggressive"].tolist()
+    with pytest.raises(ValueError, match="unknown profile"):
+        cpsim.profile("reckless")
+    # retries may change style fields only, never the goal test
+    assert not STYLE_MASK[CONDITION_FIELDS.index("goal_radius")]
+    assert STYLE_MASK[CONDITION_FIELDS.index("collision")]
+
+
+def test_condition_sampling_and_normalisation():
+    c = sample_conditions(np.random.default_rng(0), (50, 4))
+    assert c.shape == (50, 4, 10) and c.dtype == np.float32
+    assert np.all(c >= TRAIN_LOW) and np.all(c <= TRAIN_HIGH)
+    n = normalize_condition(c)
+    assert np.all(n >= -1.0) and np.all(n <= 1.0)
+    np.testing.assert_allclose(normalize_condition(TRAIN_LOW), -1.0)
+    np.testing.assert_allclose(normalize_condition(TRAIN_HIGH), 1.0)
+    validate_conditions(c)
+
+
+def test_condition_validation_names_field():
+    bad = PROFILES["normal"].copy()
+    bad[CONDITION_FIELDS.index("collision")] = 5.0
+    with pytest.raises(ValueError, match="collision"):
+        validate_conditions(bad, "deploy_condition")
+    with pytest.raises(ValueError, match="deploy"):
+        resolve_condition([1.0, 2.0], "deploy")
+    np.testing.assert_array_equal(resolve_condition("normal"), PROFILES["normal"])
