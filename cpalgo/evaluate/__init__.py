@@ -1,0 +1,42 @@
+"""BehaviorBench-style evaluation of driving policies over traffic regimes.
+
+* :mod:`cpalgo.evaluate.metrics`: per-task metrics, score, at-fault rules, outcome classes
+  (pure NumPy).
+* :mod:`cpalgo.evaluate.runner`: ``evaluate(policy, tasks, regimes, ...)``, batched through
+  one :class:`cpsim.Simulator`.
+* :mod:`cpalgo.evaluate.tables` / :mod:`cpalgo.evaluate.plots`: Markdown/JSON/CSV tables and
+  figures, written atomically.
+* ``python -m cpalgo.evaluate``: the command line.
+
+Heavy modules (simulator, torch, matplotlib) are imported lazily on first access.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from cpalgo.evaluate.metrics import OutcomeClass, CollisionType, task_score, outcome_class
+
+_LAZY = {
+    "evaluate": "cpalgo.evaluate.runner",
+    "EvalConfig": "cpalgo.evaluate.runner",
+    "EvalResult": "cpalgo.evaluate.runner",
+    "REGIMES": "cpalgo.evaluate.runner",
+    "make_tasks": "cpalgo.evaluate.runner",
+    "Task": "cpalgo.evaluate.runner",
+    "write_results": "cpalgo.evaluate.tables",
+    "markdown_tables": "cpalgo.evaluate.tables",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cpalgo.evaluate' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+__all__ = ["OutcomeClass", "CollisionType", "task_score", "outcome_class", *_LAZY]

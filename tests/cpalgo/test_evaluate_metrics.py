@@ -1,0 +1,234 @@
+"""Evaluation metrics against hand-built trajectories (pure NumPy, no simulator)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cpalgo.evaluate import metrics as M
+
+
+# ----------------------------------------------------------------------------- comfort
+def test_comfort_violations_counted_per_limit():
+    a_long = np.array([0.0, 3.5, -3.5, 3.0, 0.0, 4.0])
+    a_lat = np.array([0.0, 0.0, 0.0, -3.0, 3.1, 4.0])
+    jerk = np.array([0.0, 0.0, 5.0, 0.0, -6.0, 9.0])
+    # limits are strict: exactly 3 / 5 is not a violation
+    assert M.comfort_violations(a_long, a_lat, jerk).tolist() == [0, 1, 1, 0, 2, 3]
+
+
+def test_comfort_metric_matches_definition_and_clamps():
+    T = 10
+    alive = np.ones((2, T), bool)
+    a_long = np.zeros((2, T))
+    a_lat = np.zeros((2, T))
+    jerk = np.zeros((2, T))
+    a_long[0, :4] = 4.0  # 4 violations in 10 steps -> 1 - 4/30
+    a_long[1] = 4.0
+    a_lat[1] = 4.0
+    jerk[1] = 10.0  # every check violated every step -> 0
+    m = M.metrics_from_steps(alive, a_long, a_lat, jerk, np.ones((2, T), bool), np.zeros((2, T)))
+    np.testing.assert_allclose(m["comfort"], [1 - 4 / 30, 0.0])
+    assert m["comfort_violations"].tolist() == [4, 30]
+
+
+def test_steps_after_removal_are_ignored():
+    T = 8
+    alive = np.zeros(T, bool)
+    alive[:4] = True
+    a_long = np.where(alive, 0.0, 10.0)  # violations only where dead
+    aligned = np.array([1, 1, 0, 1, 0, 0, 0, 0], bool)
+    lat = np.array([0.5, 0.5, 1.0, 1.0, 9, 9, 9, 9])
+    m = M.metrics_from_steps(alive, a_long, np.zeros(T), np.zeros(T), aligned, lat)
+    assert m["steps_alive"] == 4
+    assert m["comfort"] == 1.0
+    assert m["lane_align"] == pytest.approx(3 / 4)
+    assert m["lane_center"] == pytest.approx(1 - 0.75 / 2)
+
+
+# ----------------------------------------------------------------------------- lanes
+def _straight_lane() -> tuple[np.ndarray, np.ndarray]:
+    pts = np.array([[0.0, 0.0], [50.0, 0.0], [100.0, 0.0], [0.0, 20.0], [100.0, 20.0]], np.float32)
+    offsets = np.array([0, 3, 5], np.int32)
+    types = np.array([0, 2], np.int8)  # one lane, one road edge (ignored)
+    return M.lane_segments(pts, offsets, types)
+
+
+def test_lane_segments_only_lanes_in_order():
+    segs, ids = _straight_lane()
+    np.testing.assert_allclose(segs, [[0, 0, 50, 0], [50, 0, 100, 0]])
+    assert ids.tolist() == [0, 0]
+
+
+def test_alignment_threshold_at_15_degrees():
+    segs, _ = _straight_lane()
+    headings = np.deg2rad([0.0, 14.0, 16.0, 180.0, -14.9])
+    xy = np.tile([[30.0, 1.0]], (5, 1))
+    q = M.lane_queries(xy, headings, segs)
+    assert q["aligned"].tolist() == [True, True, False, False, True]
+    np.testing.assert_allclose(q["lateral_offset"], 1.0)
+
+
+def test_lateral_offset_far_from_lanes_and_centering_clamp():
+    segs, _ = _straight_lane()
+    q = M.lane_queries(np.array([[30.0, 3.9], [30.0, 4.1], [-3.0, 0.0]]), np.zeros(3), segs)
+    np.testing.assert_allclose(q["lateral_offset"], [3.9, M.NO_LANE_OFFSET, 3.0], rtol=1e-6)
+    assert q["aligned"].tolist() == [True, False, True]
+    # lane_center clamps at a mean of 2 m: 1 m -> 0.5, 3.9 m and 10 m -> 0
+    T = 5
+    lat = np.array([[1.0] * T, [3.9] * T, [10.0] * T, [0.0] * T])
+    m = M.metrics_from_steps(np.ones((4, T), bool), np.zeros((4, T)), np.zeros((4, T)),
+                             np.zeros((4, T)), np.ones((4, T), bool), lat)
+    np.testing.assert_allclose(m["lane_center"], [0.5, 0.0, 0.0, 1.0])
+
+
+def test_hand_built_trajectory_end_to_end():
+    """Drive 30 steps along the lane at 1 m offset, braking hard for the last 10."""
+    dt = 0.1
+    T = 30
+    segs, _ = _straight_lane()
+    v = np.concatenate([np.full(20, 10.0), 10.0 - 4.0 * dt * np.arange(1, 11)])  # a=-4 after 20
+    x = 5.0 + np.concatenate([[0.0], np.cumsum(v[1:] * dt)])
+    xy = np.stack([x, np.full(T, 1.0)], -1)
+    heading = np.zeros(T)
+    kin = M.kinematics_from_poses(xy, heading, dt)
+    q = M.lane_queries(xy, heading, segs)
+    m = M.metrics_from_steps(np.ones(T, bool), kin["a_long"], kin["a_lat"], kin["jerk"],
+                             q["aligned"], q["lateral_offset"])
+    np.testing.assert_allclose(kin["a_long"][21:], -4.0, atol=1e-6)
+    np.testing.assert_allclose(kin["a_long"][:20], 0.0, atol=1e-6)
+    # |a_long| > 3 on the 10 braking steps, a jerk spike of -40 at the onset step 20
+    # whose a_long is 0 (kinematics put the first -4 at step 21)
+    assert m["comfort_violations"] == 10 + 1
+    assert m["comfort"] == pytest.approx(1 - 11 / 90)
+    assert m["lane_align"] == 1.0
+    assert m["lane_center"] == pytest.approx(0.5)
+    s = M.task_score(True, False, False, m["comfort"], m["lane_align"], m["lane_center"])
+    assert s == pytest.approx(100 * (0.2 * (1 - 11 / 90) + 0.5 + 0.3 * 0.5))
+
+
+def test_accumulator_and_step_paths_agree():
+    rng = np.random.default_rng(0)
+    n, T = 64, 91
+    alive = np.arange(T)[None] < rng.integers(1, T + 1, n)[:, None]
+    args = (alive, rng.normal(0, 3, (n, T)), rng.normal(0, 3, (n, T)), rng.normal(0, 5, (n, T)),
+            rng.random((n, T)) < 0.7, rng.exponential(1.5, (n, T)))
+    a = M.metrics_from_steps(*args)
+    b = M.metrics_from_accumulators(a["steps_alive"], a["comfort_violations"], a["aligned_steps"],
+                                    a["lateral_offset_sum"])
+    for k in ("comfort", "lane_align", "lane_center"):
+        np.testing.assert_allclose(a[k], b[k])
+        assert np.all((a[k] >= 0) & (a[k] <= 1))
+
+
+def test_accumulators_reject_bad_input():
+    with pytest.raises(ValueError, match="aligned_steps"):
+        M.metrics_from_accumulators([5], [0], [6], [0.0])
+    with pytest.raises(ValueError, match="steps_alive"):
+        M.metrics_from_accumulators([np.nan], [0], [0], [0.0])
+
+
+# ----------------------------------------------------------------------------- score
+def test_score_zero_on_any_failure_and_formula_otherwise():
+    goal = np.array([True, False, True, True, True])
+    af = np.array([False, False, True, False, False])
+    off = np.array([False, False, False, True, False])
+    c = np.array([0.9, 1.0, 1.0, 1.0, 0.5])
+    la = np.array([0.8, 1.0, 1.0, 1.0, 0.2])
+    lc = np.array([0.7, 1.0, 1.0, 1.0, 0.0])
+    s = M.task_score(goal, af, off, c, la, lc)
+    assert s[1:4].tolist() == [0.0, 0.0, 0.0]
+    assert s[0] == pytest.approx(100 * (0.2 * 0.9 + 0.5 * 0.8 + 0.3 * 0.7))
+    assert s[4] == pytest.approx(100 * (0.2 * 0.5 + 0.5 * 0.2))
+    assert M.task_score(True, False, False, 1.0, 1.0, 1.0) == pytest.approx(100.0)
+    with pytest.raises(ValueError, match="lane_align"):
+        M.task_score(True, False, False, 1.0, 1.5, 1.0)
+
+
+# ----------------------------------------------------------------------------- outcome classes
+def test_outcome_class_priority():
+    #            goal   at-fault  non-fault  offroad
+    rows = [(True, True, False, True), (True, False, True, True), (True, False, True, False),
+            (False, False, True, False), (False, False, False, False), (False, True, True, False)]
+    g, af, nf, off = (np.array(c) for c in zip(*rows))
+    cls = M.outcome_class(g, af, nf, off)
+    C = M.OutcomeClass
+    assert cls.tolist() == [C.AT_FAULT_COLLISION, C.OFFROAD, C.COMPLETED, C.NON_AT_FAULT_COLLISION,
+                            C.TIMEOUT, C.AT_FAULT_COLLISION]
+
+
+def test_repair_table_shares():
+    C = M.OutcomeClass
+    ref = np.array([C.TIMEOUT, C.TIMEOUT, C.TIMEOUT, C.COMPLETED, C.AT_FAULT_COLLISION])
+    other = np.array([True, False, True, True, False])
+    t = M.repair_table(ref, other)
+    assert t["timeout"]["count"] == 3
+    assert t["timeout"]["repaired"] == pytest.approx(2 / 3)
+    assert t["completed"]["repaired"] == 1.0
+    assert t["at_fault_collision"]["repaired"] == 0.0
+    assert np.isnan(t["offroad"]["repaired"])
+    assert sum(v["share"] for v in t.values()) == pytest.approx(1.0)
+
+
+# ----------------------------------------------------------------------------- at fault
+CAR = np.array([4.0, 2.0])
+
+
+def _classify(ego, other, ego_speed, other_speed):
+    return M.collision_type(np.array(ego[:2]), ego[2], ego_speed, CAR,
+                            np.array(other[:2]), other[2], other_speed, CAR)
+
+
+def test_at_fault_five_cases():
+    T = M.CollisionType
+    cases = [
+        # stopped ego, hit from behind by a moving car: no fault
+        ((0, 0, 0), (-3.5, 0, 0), 0.0, 5.0, T.STOPPED_EGO, False),
+        # moving ego hits a stopped car ahead: fault
+        ((0, 0, 0), (3.5, 0, 0), 5.0, 0.0, T.STOPPED_TRACK, True),
+        # moving ego runs into a slower moving car ahead with its front: fault
+        ((0, 0, 0), (3.8, 0.5, 0), 8.0, 3.0, T.ACTIVE_FRONT, True),
+        # moving ego rear-ended by a faster car: no fault
+        ((0, 0, 0), (-3.8, 0.2, 0), 3.0, 8.0, T.ACTIVE_REAR, False),
+        # side swipe: a car alongside merges into the ego's flank
+        ((0, 0, 0), (-0.5, 1.9, -0.1), 5.0, 5.0, T.ACTIVE_LATERAL, None),
+    ]
+    for ego, other, ve, vo, want, fault in cases:
+        kind = _classify(ego, other, ve, vo)
+        assert kind == want, (ego, other, kind)
+        if fault is not None:
+            assert M.at_fault(kind, False) == fault
+            assert M.at_fault(kind, True) == fault  # lanes only matter for lateral
+    lateral = np.array([T.ACTIVE_LATERAL, T.ACTIVE_LATERAL])
+    assert M.at_fault(lateral, np.array([True, False])).tolist() == [True, False]
+
+
+def test_collision_type_vectorised_matches_scalar():
+    rng = np.random.default_rng(1)
+    n = 200
+    ego = np.c_[rng.normal(0, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
+    oth = np.c_[rng.normal(0, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
+    ve, vo = rng.choice([0.0, 4.0], n), rng.choice([0.0, 4.0], n)
+    sizes = np.tile(CAR, (n, 1))
+    vec = M.collision_type(ego[:, :2], ego[:, 2], ve, sizes, oth[:, :2], oth[:, 2], vo, sizes)
+    one = [int(_classify(ego[i], oth[i], ve[i], vo[i])) for i in range(n)]
+    assert vec.tolist() == one
+    assert set(vec.tolist()) >= {0, 1, 2, 3, 4}
+
+
+def test_ego_spans_two_lanes():
+    # two parallel lanes, 3.6 m apart
+    pts = np.array([[0, 0], [100, 0], [0, 3.6], [100, 3.6]], np.float64)
+    segs, ids = M.lane_segments(pts, np.array([0, 2, 4]), np.array([0, 0]))
+    xy = np.array([[50.0, 0.2], [50.0, 1.8], [50.0, 3.4]])
+    spans = M.ego_spans_two_lanes(xy, np.zeros(3), np.tile(CAR, (3, 1)), segs, ids)
+    assert spans.tolist() == [False, True, False]
+
+
+def test_summarize_rates():
+    per = {"score": np.array([80.0, 0.0, 60.0, 0.0]), "goal": np.array([1, 0, 1, 0], bool),
+           "at_fault_collision": np.array([0, 1, 0, 0], bool), "offroad": np.array([0, 0, 0, 1], bool),
+           "co_player_harm": np.array([0, 2, 0, 0])}
+    s = M.summarize(per)
+    assert s == {"n": 4, "score": 35.0, "completion": 0.5, "at_fault_collision": 0.25,
+                 "offroad": 0.25, "co_player_harm": 0.5}
