@@ -1,0 +1,1 @@
+"""Helpers shared by the cpalgo algorithms (masked rollout buffer, policy forward passes)."""

@@ -1,0 +1,232 @@
+"""Root selection, ranking, admission and verification on hand-made data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cpalgo.counterplay.search import (
+    BranchOutcome,
+    admit,
+    choose_teacher,
+    rank_branches,
+    rank_key,
+    select_root,
+    verify,
+)
+
+# ----------------------------------------------------------------------------- select_root
+
+
+def _trace(points: dict[int, float], length: int = 91, fill: float = 0.0) -> np.ndarray:
+    v = np.full(length, fill)
+    for t, x in points.items():
+        v[t] = x
+    return v
+
+
+def test_select_root_latest_root_above_threshold():
+    # failure at 70; window 5..60 -> roots 10..65. V_max = 4 at root 20, V_f = 0 at 70,
+    # threshold = 2: roots with V >= 2 are 20 (4.0), 35 (2.5), 40 (2.0); latest is 40.
+    values = _trace({10: 1.0, 15: 1.5, 20: 4.0, 25: 1.0, 30: 1.9, 35: 2.5, 40: 2.0, 45: 1.0,
+                     50: 0.5, 55: 0.1, 60: -1.0, 65: -2.0, 70: 0.0})
+    roots = np.arange(0, 91, 5)
+    assert select_root(values, roots, failure_step=70) == 40
+
+
+def test_select_root_threshold_moves_with_rho():
+    values = _trace({10: 1.0, 20: 4.0, 30: 3.1, 40: 2.0, 50: 1.0, 70: 0.0})
+    roots = [10, 20, 30, 40, 50]
+    # rho = 0 -> threshold = V_max -> only the maximum qualifies
+    assert select_root(values, roots, 70, rho=0.0) == 20
+    # rho = 0.2 -> threshold 3.2: still only root 20 (3.1 < 3.2)
+    assert select_root(values, roots, 70, rho=0.2) == 20
+    # rho = 0.25 -> threshold 3.0: root 30 qualifies and is later
+    assert select_root(values, roots, 70, rho=0.25) == 30
+    # rho = 1 -> threshold V_f = 0: every root qualifies, the latest wins
+    assert select_root(values, roots, 70, rho=1.0) == 50
+
+
+def test_select_root_window_excludes_too_close_and_too_far_roots():
+    values = _trace({0: 100.0, 68: 50.0, 20: 1.0, 40: 2.0, 70: 0.0})
+    # root 0 is 70 decisions back (> 60), root 68 only 2 back (< 5): both ignored
+    assert select_root(values, [0, 20, 40, 68], 70) == 40
+    # inclusive bounds: depth exactly 5 and exactly 60 are in the window
+    assert select_root(_trace({10: 1.0, 65: 1.0, 70: 0.0}), [10, 65], 70) == 65
+    assert select_root(_trace({10: 1.0, 70: 0.0}), [10], 70) == 10
+
+
+def test_select_root_fallback_to_earliest_when_failure_value_is_highest():
+    # V_f above every root value: V_thr > V_max, nothing qualifies -> earliest in window
+    values = _trace({20: 1.0, 30: 2.0, 40: 1.5, 70: 5.0})
+    assert select_root(values, [5, 20, 30, 40], 70) == 20
+
+
+def test_select_root_empty_window_returns_none():
+    values = _trace({3: 1.0, 70: 0.0})
+    assert select_root(values, [], 70) is None
+    assert select_root(values, [68, 69], 70) is None
+    assert select_root(values, [3], 4) is None
+
+
+def test_select_root_fixed_depth_nearest_available():
+    values = np.zeros(91)
+    roots = np.arange(0, 91, 5)
+    assert select_root(values, roots, 70, mode="fixed", fixed_depth=20) == 50
+    # target 47 -> nearest root 45
+    assert select_root(values, roots, 67, mode="fixed", fixed_depth=20) == 45
+    # target 47.5 impossible; target 45+2.5 ties are broken to the earlier root
+    assert select_root(values, [40, 50], 65, mode="fixed", fixed_depth=20) == 40
+    # only roots before the failure count
+    assert select_root(values, [70, 75], 70, mode="fixed", fixed_depth=20) is None
+    # deeper than the available history: earliest root
+    assert select_root(values, [30, 60], 70, mode="fixed", fixed_depth=80) == 30
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"window": (60, 5)}, "window"),
+        ({"window": (5, 5)}, "window"),
+        ({"rho": 1.5}, "rho"),
+        ({"rho": -0.1}, "rho"),
+        ({"mode": "random"}, "mode"),
+        ({"mode": "fixed"}, "fixed_depth"),
+        ({"mode": "fixed", "fixed_depth": 0}, "fixed_depth"),
+    ],
+)
+def test_select_root_rejects_bad_arguments(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        select_root(np.zeros(91), [10, 20], 70, **kwargs)
+
+
+def test_select_root_rejects_failure_outside_trace():
+    with pytest.raises(ValueError, match="failure_step"):
+        select_root(np.zeros(10), [1, 2], 20)
+
+
+# ----------------------------------------------------------------------------- ranking
+
+
+def _outcome(completed, arrival=-1, col=None, off=None, focal=0, ret=0.0, n=4):
+    col = np.full(n, -1) if col is None else np.asarray(col)
+    off = np.full(n, -1) if off is None else np.asarray(off)
+    return BranchOutcome(focal=focal, completed=completed, arrival_step=arrival,
+                         first_collision_step=col, first_offroad_step=off, focal_return=ret)
+
+
+def test_rank_key_orders_completion_then_harm_then_arrival():
+    assert rank_key(True, 3, 90) > rank_key(False, 0, -1)
+    assert rank_key(True, 0, 90) > rank_key(True, 1, 10)
+    assert rank_key(True, 1, 40) > rank_key(True, 1, 41)
+    assert rank_key(False, 0, -1) > rank_key(False, 2, -1)
+
+
+def test_rank_branches_best_first_and_stable():
+    order = rank_branches(
+        completed=[False, True, True, True, True],
+        n_harmed=[0, 1, 0, 0, 0],
+        arrival_step=[-1, 30, 50, 40, 40],
+    )
+    assert order.tolist() == [3, 4, 2, 1, 0]
+
+
+def test_n_harmed_ignores_focal_and_absent_slots():
+    o = BranchOutcome(focal=1, completed=True, arrival_step=50,
+                      first_collision_step=[-1, 20, 30, -1], first_offroad_step=[10, -1, -1, 5],
+                      present=[True, True, True, False])
+    # slot 1 is the focal, slot 3 is absent: harmed = slot 0 (off-road) and slot 2 (collision)
+    assert o.n_harmed == 2
+
+
+# ----------------------------------------------------------------------------- admission
+
+
+def test_admit_accepts_completing_harmless_candidate():
+    factual = _outcome(False)
+    cand = _outcome(True, arrival=60)
+    assert admit(factual, cand)
+
+
+def test_admit_rejects_incomplete_or_not_better():
+    assert not admit(_outcome(False), _outcome(False))
+    # factual also completes, earlier: the candidate does not outrank it
+    assert not admit(_outcome(True, arrival=40), _outcome(True, arrival=50))
+    # same rank key: not strictly better
+    assert not admit(_outcome(True, arrival=40), _outcome(True, arrival=40))
+    assert admit(_outcome(True, arrival=50), _outcome(True, arrival=40))
+
+
+def test_admit_rejects_new_collision_of_a_neighbour():
+    factual = _outcome(False)
+    cand = _outcome(True, arrival=60, col=[-1, -1, 45, -1])
+    assert not admit(factual, cand)
+
+
+def test_admit_rejects_neighbour_collision_earlier_than_factual():
+    # Neighbour 2 collides in both branches, but 10 decisions earlier in the candidate.
+    # The rank key is identical on the harm count, and the candidate completes, so only
+    # the per-vehicle test can reject it.
+    factual = _outcome(False, col=[-1, -1, 55, -1])
+    cand = _outcome(True, arrival=60, col=[-1, -1, 45, -1])
+    assert cand.key > factual.key
+    assert not admit(factual, cand)
+    # the same collision at the same step or later is not caused by the retry
+    assert admit(factual, _outcome(True, arrival=60, col=[-1, -1, 55, -1]))
+    assert admit(factual, _outcome(True, arrival=60, col=[-1, -1, 70, -1]))
+
+
+def test_admit_per_vehicle_test_is_not_a_count():
+    # Same number of harmed vehicles, but a different vehicle: vehicle 3 is new.
+    factual = _outcome(False, off=[-1, 30, -1, -1])
+    cand = _outcome(True, arrival=60, off=[-1, -1, -1, 30])
+    assert not admit(factual, cand)
+
+
+def test_admit_ignores_the_focal_agents_own_events():
+    factual = _outcome(False, col=[50, -1, -1, -1])
+    cand = _outcome(True, arrival=40, off=[80, -1, -1, -1])  # after arrival it is gone anyway
+    assert admit(factual, cand)
+
+
+def test_admit_rejects_mismatched_branches():
+    with pytest.raises(ValueError, match="candidate"):
+        admit(_outcome(False, focal=0), _outcome(True, arrival=3, focal=1))
+    with pytest.raises(ValueError, match="candidate"):
+        admit(_outcome(False), _outcome(True, arrival=3, n=5))
+
+
+def test_branch_outcome_validates_shapes():
+    with pytest.raises(ValueError, match="first_offroad_step"):
+        BranchOutcome(0, True, 3, np.full(3, -1), np.full(4, -1))
+    with pytest.raises(ValueError, match="focal"):
+        BranchOutcome(5, True, 3, np.full(3, -1), np.full(3, -1))
+
+
+# ----------------------------------------------------------------------------- verification + choice
+
+
+def test_verify_discards_when_rerun_fails():
+    factual = _outcome(False)
+    # first run: admissible; rerun with fresh draws: the teacher times out too
+    assert admit(factual, _outcome(True, arrival=60))
+    assert not verify(_outcome(False), _outcome(False))
+    # rerun completes but a neighbour now collides earlier than in the factual rerun
+    assert not verify(_outcome(False, col=[-1, 70, -1, -1]), _outcome(True, arrival=50, col=[-1, 60, -1, -1]))
+    assert verify(_outcome(False), _outcome(True, arrival=62))
+
+
+def test_choose_teacher_by_rank_and_by_return():
+    factual = _outcome(False, col=[-1, -1, 55, -1])
+    candidates = [
+        _outcome(False, ret=9.0),                                  # incomplete
+        _outcome(True, arrival=50, col=[-1, -1, 45, -1], ret=8.0),  # earlier neighbour crash
+        _outcome(True, arrival=70, ret=5.0),
+        _outcome(True, arrival=60, ret=1.0),
+        _outcome(True, arrival=60, ret=2.0),
+    ]
+    assert choose_teacher(factual, candidates) == 3            # earliest arrival, first of the tie
+    assert choose_teacher(factual, candidates, selection="return") == 2
+    assert choose_teacher(factual, candidates[:2]) is None
+    with pytest.raises(ValueError, match="selection"):
+        choose_teacher(factual, candidates, selection="best")
