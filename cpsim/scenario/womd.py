@@ -1,0 +1,643 @@
+"""WOMD scenario JSON (GPUDrive / PufferDrive / ScenarioMax schema) and the ``.npz`` cache.
+
+Public API:
+
+* :func:`load` ``(path) -> Scenario``: a ``.json`` file or a ``.npz`` cache, by suffix.
+* :func:`load_json`, :func:`load_cache`, :func:`save_cache`: the two formats explicitly.
+* :func:`load_dir` ``(path, cache_dir=None) -> (list[Scenario], LoadReport)``: a folder of
+  ``.json`` and/or ``.npz`` files, preferring a fresh cache over its JSON.
+* :func:`convert_dir` ``(src_dir, dst_dir) -> LoadReport``: JSON folder -> one ``.npz`` per file.
+
+JSON schema read here (fields not listed are ignored, e.g. ``tl_states``, ``height``, ``z``):
+
+* top level: ``scenario_id`` (or ``name``; the scenario id), ``objects``, ``roads``,
+  ``metadata`` with ``sdc_track_index`` (-> ``ego_index``) and optionally
+  ``tracks_to_predict`` (list of ``{track_index, difficulty}`` or plain indices).
+* object: ``position`` (91 x {x, y, z}), ``velocity`` (91 x {x, y}), ``heading`` (91),
+  ``valid`` (91), ``width``, ``length``, ``goalPosition`` {x, y}, ``type``; optional
+  ``id`` (default: the object's index) and ``mark_as_expert`` (default False).
+  Unknown object types map to :attr:`AgentType.OTHER`.
+* road: ``geometry`` (list of >= 1 {x, y, z}), ``type``; unknown road types (including
+  ``"unknown"``) map to :attr:`RoadType.OTHER`. Single-point roads (stop signs) are kept
+  as one-vertex polylines.
+
+Values at invalid steps are kept as stored (WOMD writes -10000 there); only valid steps
+are checked for finiteness. Every malformed input raises :class:`ScenarioError` naming the
+file and the field (``objects[3].heading``, ``roads[7].geometry[2].x``, ...); nothing
+half-built is ever returned and cache files are written atomically.
+
+The cache (format :data:`CACHE_FORMAT_VERSION`) is an uncompressed ``.npz`` holding every
+array of the :class:`Scenario` plus ``id``, ``ego_index``, ``family``, ``source`` and the
+size and modification time of the JSON it was made from (used to decide freshness).
+Uncompressed because it loads about twice as fast as ``savez_compressed`` for about
+twice the bytes (see BENCHMARKS.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import tempfile
+import warnings
+import zipfile
+from operator import itemgetter
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from cpsim.scenario.datatypes import (
+    NUM_STEPS,
+    AgentType,
+    RoadType,
+    Scenario,
+    ScenarioError,
+)
+
+try:  # optional: about 4x faster parsing; stdlib json is the fallback and handles NaN
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - depends on the environment
+    _orjson = None
+
+__all__ = [
+    "CACHE_FORMAT_VERSION",
+    "CACHE_SUFFIX",
+    "LoadReport",
+    "ScenarioLoadWarning",
+    "convert_dir",
+    "load",
+    "load_cache",
+    "load_dir",
+    "load_json",
+    "save_cache",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Version of the ``.npz`` cache layout; caches of another version are rejected (and rebuilt
+#: by :func:`load_dir` / :func:`convert_dir` when the JSON is at hand).
+CACHE_FORMAT_VERSION = 1
+CACHE_SUFFIX = ".npz"
+JSON_SUFFIX = ".json"
+FAMILY = "womd"
+
+_GET_XY = itemgetter("x", "y")
+
+_OBJECT_TYPES: dict[str, AgentType] = {
+    "vehicle": AgentType.VEHICLE,
+    "pedestrian": AgentType.PEDESTRIAN,
+    "cyclist": AgentType.CYCLIST,
+}
+_ROAD_TYPES: dict[str, RoadType] = {
+    "lane": RoadType.LANE,
+    "road_line": RoadType.ROAD_LINE,
+    "road_edge": RoadType.ROAD_EDGE,
+    "crosswalk": RoadType.CROSSWALK,
+    "stop_sign": RoadType.STOP_SIGN,
+    "speed_bump": RoadType.SPEED_BUMP,
+    "driveway": RoadType.DRIVEWAY,
+}
+
+# Scenario fields stored as arrays in the cache (all of them, see Scenario.arrays()).
+_ARRAY_FIELDS: tuple[str, ...] = tuple(
+    f.name for f in dataclasses.fields(Scenario)
+    if f.name not in ("id", "ego_index", "source", "family")
+)
+_SCALAR_FIELDS: tuple[str, ...] = ("format_version", "id", "ego_index", "family", "source")
+
+
+class ScenarioLoadWarning(UserWarning):
+    """Issued when a folder load or conversion skipped files (the report says which and why)."""
+
+
+@dataclasses.dataclass
+class LoadReport:
+    """What a folder load or conversion did.
+
+    Attributes:
+        loaded: paths (str) whose scenario was loaded or converted, in file-name order.
+        skipped: ``(path, reason)`` for every file that was not used: malformed files,
+            stale or unreadable caches superseded by their JSON, duplicate scenario ids.
+        written: cache files written by this call.
+    """
+
+    loaded: list[str] = dataclasses.field(default_factory=list)
+    skipped: list[tuple[str, str]] = dataclasses.field(default_factory=list)
+    written: list[str] = dataclasses.field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing was skipped."""
+        return not self.skipped
+
+    def summary(self) -> str:
+        """Multi-line human-readable summary naming every skipped file and its reason."""
+        lines = [f"{len(self.loaded)} loaded, {len(self.skipped)} skipped, {len(self.written)} cache(s) written"]
+        lines += [f"  skipped {path}: {reason}" for path, reason in self.skipped]
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def _warn_if_skipped(self, what: str) -> None:
+        if self.skipped:
+            message = f"{what}: {self.summary()}"
+            logger.warning(message)
+            warnings.warn(message, ScenarioLoadWarning, stacklevel=3)
+
+
+# ---------------------------------------------------------------------------- JSON parsing
+def _parse_json_bytes(data: bytes, source: str) -> Any:
+    """Parse JSON bytes; raise ScenarioError(field '<document>') when not valid JSON."""
+    if _orjson is not None:
+        try:
+            return _orjson.loads(data)
+        except _orjson.JSONDecodeError:
+            pass  # re-parse with the stdlib: it accepts NaN/Infinity and gives line/column
+    try:
+        return json.loads(data)
+    except json.JSONDecodeError as exc:
+        truncated = exc.pos >= len(data.rstrip())
+        what = "truncated JSON (unexpected end of file)" if truncated else "not valid JSON"
+        raise ScenarioError(source, "<document>", f"{what}: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except (UnicodeDecodeError, RecursionError) as exc:
+        raise ScenarioError(source, "<document>", f"not valid JSON: {exc}") from None
+
+
+def _get(container: Any, key: str, where: str, source: str) -> Any:
+    """``container[key]``; ScenarioError naming ``where.key`` when missing."""
+    if not isinstance(container, dict):
+        raise ScenarioError(source, where or "<document>", f"expected a JSON object, got {type(container).__name__}")
+    try:
+        return container[key]
+    except KeyError:
+        raise ScenarioError(source, f"{where}.{key}" if where else key, "missing") from None
+
+
+def _list(value: Any, field: str, source: str, length: int | None = None) -> list:
+    if not isinstance(value, list):
+        raise ScenarioError(source, field, f"expected a list, got {type(value).__name__}")
+    if length is not None and len(value) != length:
+        raise ScenarioError(source, field, f"trajectory length {len(value)}, expected {length}")
+    return value
+
+
+def _xy_list(points: list, field: str, source: str) -> list[tuple[Any, Any]]:
+    """[(x, y), ...] from a list of {x, y[, z]} objects; names the bad element on failure."""
+    try:
+        return list(map(_GET_XY, points))
+    except (KeyError, TypeError):
+        for t, p in enumerate(points):
+            if not isinstance(p, dict):
+                raise ScenarioError(source, f"{field}[{t}]", f"expected an {{x, y}} object, got {type(p).__name__}") from None
+            for key in ("x", "y"):
+                if key not in p:
+                    raise ScenarioError(source, f"{field}[{t}].{key}", "missing") from None
+        raise  # pragma: no cover - unreachable: one of the checks above fires
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _numeric(values: list, field_of: Callable[[int], str], source: str, per_item: int) -> np.ndarray:
+    """Convert a flat list (of numbers or tuples of numbers) to float64.
+
+    ``field_of(i)`` names the field holding item ``i`` (``per_item`` items per field), used
+    only on the error path to point at the first non-numeric value.
+    """
+    arr = np.array(values) if values else np.zeros(0)
+    if arr.dtype.kind in "iuf":
+        return arr.astype(np.float64, copy=False)
+    for i, v in enumerate(values):  # slow path: locate the offending value
+        for c in (v if isinstance(v, tuple) else (v,)):
+            if not _is_number(c):
+                raise ScenarioError(source, f"{field_of(i // per_item)}[{i % per_item}]",
+                                    f"expected a number, got {c!r:.40}")
+    raise ScenarioError(source, field_of(0), "expected numbers")  # pragma: no cover
+
+
+def _first_bad_row(bad: np.ndarray) -> int:
+    return int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
+
+
+def _parse_objects(objects: list, source: str) -> dict[str, np.ndarray]:
+    """Build the agent arrays from the ``objects`` list (N objects)."""
+    n = len(objects)
+    xy, vel, heading, valid = [], [], [], []
+    scalars: list[tuple[Any, Any, Any, Any]] = []  # (length, width, goal x, goal y)
+    types = np.empty(n, np.int8)
+    ids = np.empty(n, np.int64)
+    expert = np.zeros(n, bool)
+    # A loop over objects is fine here (load time, once per file); the per-step data goes
+    # through map/itemgetter and one bulk NumPy conversion per field.
+    for i, obj in enumerate(objects):
+        where = f"objects[{i}]"
+        pos = _list(_get(obj, "position", where, source), f"{where}.position", source, NUM_STEPS)
+        vv = _list(_get(obj, "velocity", where, source), f"{where}.velocity", source, NUM_STEPS)
+        hh = _list(_get(obj, "heading", where, source), f"{where}.heading", source, NUM_STEPS)
+        va = _list(_get(obj, "valid", where, source), f"{where}.valid", source, NUM_STEPS)
+        length = _get(obj, "length", where, source)
+        width = _get(obj, "width", where, source)
+        goal = _get(obj, "goalPosition", where, source)
+        kind = _get(obj, "type", where, source)
+        for name, v in (("length", length), ("width", width)):
+            if not _is_number(v):
+                raise ScenarioError(source, f"{where}.{name}", f"expected a number, got {v!r:.40}")
+            if not v > 0:  # also rejects NaN
+                raise ScenarioError(source, f"{where}.{name}", f"must be a positive size in m, got {v}")
+        if not isinstance(goal, dict):
+            raise ScenarioError(source, f"{where}.goalPosition", "expected an {x, y} object")
+        gx, gy = (_get(goal, k, f"{where}.goalPosition", source) for k in ("x", "y"))
+        for k, g in (("x", gx), ("y", gy)):
+            if not _is_number(g) or not np.isfinite(g):
+                raise ScenarioError(source, f"{where}.goalPosition.{k}", f"expected a finite number, got {g!r:.40}")
+        if not isinstance(kind, str):
+            raise ScenarioError(source, f"{where}.type", f"expected a string, got {type(kind).__name__}")
+        types[i] = _OBJECT_TYPES.get(kind.lower(), AgentType.OTHER)
+        oid = obj.get("id", i)
+        if not isinstance(oid, int) or isinstance(oid, bool):
+            raise ScenarioError(source, f"{where}.id", f"expected an integer, got {oid!r:.40}")
+        ids[i] = oid
+        flag = obj.get("mark_as_expert", False)
+        if not isinstance(flag, bool):
+            raise ScenarioError(source, f"{where}.mark_as_expert", f"expected true/false, got {flag!r:.40}")
+        expert[i] = flag
+        xy += _xy_list(pos, f"{where}.position", source)
+        vel += _xy_list(vv, f"{where}.velocity", source)
+        heading += hh
+        valid += va
+        scalars.append((length, width, gx, gy))
+
+    def obj_field(name: str) -> Callable[[int], str]:
+        return lambda i: f"objects[{i}].{name}"
+
+    valid_arr = np.array(valid)
+    if valid_arr.dtype != bool:
+        bad = next(k for k, v in enumerate(valid) if not isinstance(v, bool))
+        raise ScenarioError(source, f"objects[{bad // NUM_STEPS}].valid[{bad % NUM_STEPS}]",
+                            f"expected true/false, got {valid[bad]!r:.40}")
+    valid_arr = valid_arr.reshape(n, NUM_STEPS)
+    with np.errstate(over="ignore", invalid="ignore"):  # -1e39 etc. become inf, checked below
+        xy_arr = _numeric(xy, obj_field("position"), source, NUM_STEPS).astype(np.float32).reshape(n, NUM_STEPS, 2)
+        vel_arr = _numeric(vel, obj_field("velocity"), source, NUM_STEPS).astype(np.float32).reshape(n, NUM_STEPS, 2)
+        head_arr = _numeric(heading, obj_field("heading"), source, NUM_STEPS).astype(np.float32).reshape(n, NUM_STEPS)
+        sc = np.array(scalars, np.float64)
+        sc32 = sc.astype(np.float32)
+    if not np.all(np.isfinite(sc32)):
+        i, j = np.argwhere(~np.isfinite(sc32))[0]
+        name = ("length", "width", "goalPosition.x", "goalPosition.y")[j]
+        raise ScenarioError(source, f"objects[{i}].{name}", f"value {sc[i, j]:g} does not fit float32")
+    for name, arr in (("position", xy_arr), ("velocity", vel_arr), ("heading", head_arr)):
+        finite = np.isfinite(arr) if arr.ndim == 2 else np.isfinite(arr).all(axis=-1)
+        bad = valid_arr & ~finite
+        if np.any(bad):
+            i, t = np.argwhere(bad)[0]
+            raise ScenarioError(source, f"objects[{i}].{name}[{t}]", "NaN or infinite value at a valid step")
+    if not np.any(valid_arr):
+        raise ScenarioError(source, "objects[*].valid", "no object has a valid step")
+    return {
+        "log_xy": xy_arr,
+        "log_velocity": vel_arr,
+        "log_heading": head_arr,
+        "log_valid": valid_arr,
+        "sizes": sc32[:, :2].copy(),
+        "goal_xy": sc32[:, 2:].copy(),
+        "agent_types": types,
+        "agent_ids": ids,
+        "mark_as_expert": expert,
+    }
+
+
+def _parse_roads(roads: list, source: str) -> dict[str, np.ndarray]:
+    """Build ``road_points``, ``road_offsets`` and ``road_types`` from the ``roads`` list."""
+    points: list[tuple[Any, Any]] = []
+    offsets = np.empty(len(roads) + 1, np.int64)
+    offsets[0] = 0
+    types = np.empty(len(roads), np.int8)
+    for r, road in enumerate(roads):
+        where = f"roads[{r}]"
+        geom = _list(_get(road, "geometry", where, source), f"{where}.geometry", source)
+        if not geom:
+            raise ScenarioError(source, f"{where}.geometry", "empty polyline (needs at least one point)")
+        kind = _get(road, "type", where, source)
+        if not isinstance(kind, str):
+            raise ScenarioError(source, f"{where}.type", f"expected a string, got {type(kind).__name__}")
+        types[r] = _ROAD_TYPES.get(kind.lower(), RoadType.OTHER)
+        points += _xy_list(geom, f"{where}.geometry", source)
+        offsets[r + 1] = len(points)
+
+    arr = np.array(points)
+    if arr.dtype.kind not in "iuf":  # slow path: locate the first non-numeric coordinate
+        i = next(k for k, p in enumerate(points) if not all(map(_is_number, p)))
+        r = int(np.searchsorted(offsets, i, side="right") - 1)
+        raise ScenarioError(source, f"roads[{r}].geometry[{i - offsets[r]}]",
+                            f"expected numbers, got {points[i]!r:.60}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        pts = arr.astype(np.float32).reshape(-1, 2)
+    bad = ~np.isfinite(pts).all(axis=1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        r = int(np.searchsorted(offsets, i, side="right") - 1)
+        raise ScenarioError(source, f"roads[{r}].geometry[{i - offsets[r]}]", "NaN or infinite value")
+    if offsets[-1] > np.iinfo(np.int32).max:
+        raise ScenarioError(source, "roads", "too many road points for int32 offsets")
+    return {"road_points": pts, "road_offsets": offsets.astype(np.int32), "road_types": types}
+
+
+def _parse_document(doc: Any, source: str) -> Scenario:
+    if not isinstance(doc, dict):
+        raise ScenarioError(source, "<document>", f"expected a JSON object at the top level, got {type(doc).__name__}")
+    sid = doc.get("scenario_id", doc.get("name"))
+    if sid is None:
+        raise ScenarioError(source, "scenario_id", "missing (and no 'name' either)")
+    if not isinstance(sid, (str, int)) or isinstance(sid, bool) or str(sid) == "":
+        raise ScenarioError(source, "scenario_id", f"expected a non-empty string, got {sid!r:.40}")
+    objects = _get(doc, "objects", "", source)
+    if not isinstance(objects, list):
+        raise ScenarioError(source, "objects", f"expected a list, got {type(objects).__name__}")
+    if not objects:
+        raise ScenarioError(source, "objects", "no objects (agents)")
+    roads = _get(doc, "roads", "", source)
+    if not isinstance(roads, list):
+        raise ScenarioError(source, "roads", f"expected a list, got {type(roads).__name__}")
+    if not roads:
+        raise ScenarioError(source, "roads", "no roads")
+    meta = _get(doc, "metadata", "", source)
+    sdc = _get(meta, "sdc_track_index", "metadata", source)
+    n = len(objects)
+    if not isinstance(sdc, int) or isinstance(sdc, bool) or not 0 <= sdc < n:
+        raise ScenarioError(source, "metadata.sdc_track_index", f"{sdc!r:.40} is not an object index in [0, {n})")
+    ttp_raw = meta.get("tracks_to_predict", [])
+    if not isinstance(ttp_raw, list):
+        raise ScenarioError(source, "metadata.tracks_to_predict", f"expected a list, got {type(ttp_raw).__name__}")
+    ttp = np.empty(len(ttp_raw), np.int32)
+    for k, entry in enumerate(ttp_raw):
+        field = f"metadata.tracks_to_predict[{k}]"
+        if isinstance(entry, dict):
+            entry = _get(entry, "track_index", field, source)
+            field += ".track_index"
+        if not isinstance(entry, int) or isinstance(entry, bool) or not 0 <= entry < n:
+            raise ScenarioError(source, field, f"{entry!r:.40} is not an object index in [0, {n})")
+        ttp[k] = entry
+    agents = _parse_objects(objects, source)
+    road = _parse_roads(roads, source)
+    return Scenario(
+        id=str(sid),
+        ego_index=sdc,
+        tracks_to_predict=ttp,
+        source=source,
+        family=FAMILY,
+        **agents,
+        **road,
+    )
+
+
+def load_json(path: str | os.PathLike) -> Scenario:
+    """Read one WOMD scenario JSON file into a validated :class:`Scenario`.
+
+    ``source`` is ``str(path)``, ``family`` is ``"womd"``, ``id`` is ``scenario_id``
+    (else ``name``). Raises :class:`ScenarioError` naming the file and the field.
+    """
+    source = str(path)
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise ScenarioError(source, "path", "file not found") from None
+    except OSError as exc:
+        raise ScenarioError(source, "path", f"cannot read: {exc}") from None
+    return _parse_document(_parse_json_bytes(data, source), source)
+
+
+# ---------------------------------------------------------------------------- .npz cache
+def _origin_stat(path: Path) -> tuple[int, int]:
+    st = path.stat()
+    return int(st.st_size), int(st.st_mtime_ns)
+
+
+def save_cache(scenario: Scenario, path: str | os.PathLike, origin: str | os.PathLike | None = None) -> Path:
+    """Write ``scenario`` to an uncompressed ``.npz`` cache at ``path``, atomically.
+
+    ``origin`` is the JSON the scenario came from; its size and modification time are
+    stored so that :func:`load_dir` / :func:`convert_dir` can tell whether the cache is
+    fresh. The file is written to a temporary name in the same folder and moved into place
+    with ``os.replace``, so readers never see a partial cache. Returns the path.
+    """
+    dst = Path(path)
+    if dst.suffix != CACHE_SUFFIX:
+        raise ValueError(f"path: cache files must end in {CACHE_SUFFIX}, got {dst.name!r}")
+    payload: dict[str, np.ndarray] = {name: np.asarray(getattr(scenario, name)) for name in _ARRAY_FIELDS}
+    payload.update(
+        format_version=np.array(CACHE_FORMAT_VERSION, np.int64),
+        id=np.array(scenario.id),
+        ego_index=np.array(scenario.ego_index, np.int64),
+        family=np.array(scenario.family),
+        source=np.array(scenario.source),
+    )
+    if origin is not None:
+        size, mtime_ns = _origin_stat(Path(origin))
+        payload.update(origin_size=np.array(size, np.int64), origin_mtime_ns=np.array(mtime_ns, np.int64),
+                       origin_name=np.array(Path(origin).name))
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=f".{dst.stem}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **payload)
+        os.replace(tmp, dst)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return dst
+
+
+def _read_cache(path: Path) -> tuple[Scenario, dict[str, Any]]:
+    """Load a cache file; returns the scenario and its origin metadata (may be empty)."""
+    source = str(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except FileNotFoundError:
+        raise ScenarioError(source, "path", "file not found") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise ScenarioError(source, "<document>", f"not a readable .npz cache: {exc}") from None
+    if "format_version" not in data:
+        raise ScenarioError(source, "format_version", "missing: not a cpsim scenario cache")
+    version = data["format_version"]
+    if version.shape != () or version.dtype.kind not in "iu" or int(version) != CACHE_FORMAT_VERSION:
+        raise ScenarioError(source, "format_version", f"cache format {version!r} is not {CACHE_FORMAT_VERSION}")
+    for name in (*_SCALAR_FIELDS, *_ARRAY_FIELDS):
+        if name not in data:
+            raise ScenarioError(source, name, "missing from the cache")
+    for name in ("id", "family", "source"):
+        if data[name].shape != () or data[name].dtype.kind != "U":
+            raise ScenarioError(source, name, "expected a string")
+    if data["ego_index"].shape != () or data["ego_index"].dtype.kind not in "iu":
+        raise ScenarioError(source, "ego_index", "expected an integer")
+    for name in _ARRAY_FIELDS:
+        if data[name].dtype.kind not in "biuf":
+            raise ScenarioError(source, name, f"unexpected dtype {data[name].dtype}")
+    scenario = Scenario(
+        id=str(data["id"]),
+        ego_index=int(data["ego_index"]),
+        family=str(data["family"]),
+        # The cache is a transparent copy: keep the original source (the JSON path) so that
+        # messages and reports about the scenario point at where it came from.
+        source=str(data["source"]) or source,
+        **{name: data[name] for name in _ARRAY_FIELDS},
+    )
+    origin = {}
+    if "origin_size" in data and "origin_mtime_ns" in data:
+        origin = {"size": int(data["origin_size"]), "mtime_ns": int(data["origin_mtime_ns"]),
+                  "name": str(data.get("origin_name", ""))}
+    return scenario, origin
+
+
+def load_cache(path: str | os.PathLike) -> Scenario:
+    """Load a ``.npz`` cache written by :func:`save_cache`. ``source`` is the original source."""
+    return _read_cache(Path(path))[0]
+
+
+def load(path: str | os.PathLike) -> Scenario:
+    """Load a scenario from a ``.json`` file or a ``.npz`` cache, chosen by suffix."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == JSON_SUFFIX:
+        return load_json(p)
+    if suffix == CACHE_SUFFIX:
+        return load_cache(p)
+    raise ScenarioError(str(path), "path", f"unknown suffix {p.suffix!r}: expected {JSON_SUFFIX} or {CACHE_SUFFIX}")
+
+
+# ---------------------------------------------------------------------------- folders
+def _folder(path: str | os.PathLike, argument: str) -> Path:
+    folder = Path(path)
+    if not folder.is_dir():
+        raise ScenarioError(str(path), argument, "folder does not exist")
+    return folder
+
+
+def _files(folder: Path, suffix: str) -> dict[str, Path]:
+    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() == suffix and p.is_file()}
+
+
+def _fresh(origin: dict[str, Any], json_path: Path) -> bool:
+    """Whether a cache with this origin metadata was made from ``json_path`` as it is now."""
+    if not origin:
+        return False
+    size, mtime_ns = _origin_stat(json_path)
+    return origin["size"] == size and origin["mtime_ns"] == mtime_ns and origin.get("name", json_path.name) == json_path.name
+
+
+def load_dir(
+    path: str | os.PathLike, cache_dir: str | os.PathLike | None = None
+) -> tuple[list[Scenario], LoadReport]:
+    """Load every ``.json`` and ``.npz`` scenario in a folder (not recursive).
+
+    For each file stem, a fresh cache is preferred over the JSON: first
+    ``cache_dir/<stem>.npz`` (when ``cache_dir`` is given), then ``<stem>.npz`` next to the
+    JSON. A cache is fresh when the size and modification time it recorded match the JSON.
+    With ``cache_dir``, missing, stale or unreadable caches are (re)written from the JSON,
+    so the folder is converted once. A stale or unreadable ``.npz`` inside the folder itself
+    is left alone and reported as skipped; ``.npz`` files without a JSON are loaded as they
+    are. A second file with an already-loaded scenario id is skipped.
+
+    Returns the scenarios sorted by file name and a :class:`LoadReport`; anything skipped
+    is also issued as a :class:`ScenarioLoadWarning`. Raises :class:`ScenarioError` when the
+    folder is missing, holds no scenario files, or every file was skipped.
+    """
+    folder = _folder(path, "path")
+    jsons, npzs = _files(folder, JSON_SUFFIX), _files(folder, CACHE_SUFFIX)
+    if not jsons and not npzs:
+        raise ScenarioError(str(path), "path", f"no {JSON_SUFFIX} or {CACHE_SUFFIX} files in the folder")
+    cache = Path(cache_dir) if cache_dir is not None else None
+    report = LoadReport()
+    scenarios: list[Scenario] = []
+    seen_ids: dict[str, str] = {}
+    for stem in sorted(set(jsons) | set(npzs)):
+        json_path = jsons.get(stem)
+        scenario, used = None, None
+        candidates = ([cache / f"{stem}{CACHE_SUFFIX}"] if cache is not None and json_path is not None else [])
+        if stem in npzs and npzs[stem] not in candidates:
+            candidates.append(npzs[stem])
+        for cand in candidates:
+            managed = cache is not None and cand.parent == cache and cand != npzs.get(stem)
+            if not cand.is_file():
+                continue
+            try:
+                sc, origin = _read_cache(cand)
+            except ScenarioError as exc:
+                if not managed:
+                    report.skipped.append((str(cand), exc.reason if json_path is None else
+                                           f"unreadable cache, loaded {json_path.name} instead: {exc.reason}"))
+                continue
+            if json_path is not None and not _fresh(origin, json_path):
+                if not managed:
+                    report.skipped.append((str(cand), f"stale cache, loaded {json_path.name} instead"))
+                continue
+            scenario, used = sc, cand
+            break
+        if scenario is None and json_path is not None:
+            try:
+                scenario, used = load_json(json_path), json_path
+            except ScenarioError as exc:
+                report.skipped.append((str(json_path), str(exc)))
+                continue
+            if cache is not None:
+                target = cache / f"{stem}{CACHE_SUFFIX}"
+                save_cache(scenario, target, origin=json_path)
+                report.written.append(str(target))
+        if scenario is None:
+            continue
+        if scenario.id in seen_ids:
+            report.skipped.append((str(used), f"duplicate scenario id {scenario.id!r} (already loaded from {seen_ids[scenario.id]})"))
+            continue
+        seen_ids[scenario.id] = str(used)
+        scenarios.append(scenario)
+        report.loaded.append(str(used))
+    if not scenarios:
+        raise ScenarioError(str(path), "path", "no scenario could be loaded:\n" + report.summary())
+    report._warn_if_skipped(f"load_dir({str(path)!r})")
+    return scenarios, report
+
+
+def convert_dir(
+    src_dir: str | os.PathLike, dst_dir: str | os.PathLike, overwrite: bool = False
+) -> LoadReport:
+    """Convert every ``*.json`` in ``src_dir`` to ``dst_dir/<stem>.npz`` (created if needed).
+
+    A cache that is already fresh for its JSON is kept unless ``overwrite``. Malformed
+    files are skipped and reported (also as a :class:`ScenarioLoadWarning`); no partial
+    cache is ever left behind. ``loaded`` lists the JSON files that now have a fresh cache.
+    Raises :class:`ScenarioError` when ``src_dir`` is missing or holds no ``.json`` file.
+    """
+    src = _folder(src_dir, "src_dir")
+    jsons = _files(src, JSON_SUFFIX)
+    if not jsons:
+        raise ScenarioError(str(src_dir), "src_dir", f"no {JSON_SUFFIX} files in the folder")
+    dst = Path(dst_dir)
+    dst.mkdir(parents=True, exist_ok=True)
+    report = LoadReport()
+    for stem, json_path in sorted(jsons.items()):
+        target = dst / f"{stem}{CACHE_SUFFIX}"
+        if not overwrite and target.is_file():
+            try:
+                if _fresh(_read_cache(target)[1], json_path):
+                    report.loaded.append(str(json_path))
+                    continue
+            except ScenarioError:
+                pass  # unreadable cache: rebuild it below
+        try:
+            scenario = load_json(json_path)
+        except ScenarioError as exc:
+            report.skipped.append((str(json_path), str(exc)))
+            continue
+        save_cache(scenario, target, origin=json_path)
+        report.loaded.append(str(json_path))
+        report.written.append(str(target))
+    report._warn_if_skipped(f"convert_dir({str(src_dir)!r})")
+    return report
