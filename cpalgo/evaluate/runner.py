@@ -1,0 +1,701 @@
+"""Batched BehaviorBench-style evaluation: every task x traffic regime in one simulator.
+
+A *task* is one scenario with its designated ego (``Scenario.ego_index``, simulator slot
+0). Tasks come from an Interactive-N and a Random-N split of an evaluation pool that is
+disjoint from training (:func:`make_tasks`; procedural ``eval_pool`` by default, or a
+folder of WOMD JSON / ``.npz``).
+
+For each task and each traffic regime the ego policy drives under a fixed deployment
+condition with deterministic (argmax) actions until the end of the episode. All
+task-regimes are laid out over the worlds of one :class:`cpsim.Simulator` (in chunks of
+``max_worlds``); co-players are driven by :class:`cpsim.envs.regimes.TrafficDriver`, one
+driver per regime, each owning the worlds of its regime, so a step costs one simulator
+step, one ego forward pass and one forward pass per model-driven regime.
+
+Regimes (:data:`REGIMES`, BehaviorBench's eight):
+
+============== ===================================================================
+idm            co-players follow their logged routes with IDM
+selfplay       co-players driven by the self-play policy (``traffic_policy``) under
+               conditions drawn from p_train at reset
+bc             co-players driven by the behaviour-cloning log-imitation model
+               (``bc_policy``, default ``zoo/bc_traffic.pt``), stands in for SMART
+replay         expert log replay
+aggressive     ``traffic_policy`` under the aggressive profile
+normal         ``traffic_policy`` under the normal profile
+cautious       ``traffic_policy`` under the cautious profile
+mix            ``traffic_policy``, each co-player draws one of the three profiles
+============== ===================================================================
+
+``static`` (co-players stand still) is accepted as an extra regime.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from cpalgo.evaluate import metrics as M
+from cpsim.conditions import resolve_condition
+
+#: BehaviorBench's eight traffic regimes, in the column order of the tables.
+REGIMES: tuple[str, ...] = ("idm", "selfplay", "bc", "replay", "aggressive", "normal", "cautious", "mix")
+#: Extra regimes accepted on request.
+EXTRA_REGIMES: tuple[str, ...] = ("static",)
+REGIME_ALIASES: dict[str, str] = {
+    "self-play": "selfplay", "policy": "selfplay", "ppo": "selfplay",
+    "log-imitation": "bc", "smart": "bc", "expert": "replay", "log": "replay",
+}
+SPLITS: tuple[str, ...] = ("interactive", "random")
+#: Ego "policies" that are built-in simulator controllers (baselines, sanity checks).
+EGO_CONTROLLERS: dict[str, int] = {"replay": 1, "expert": 1, "idm": 2, "static": 3}
+#: Default shipped BC traffic model.
+DEFAULT_BC_PATH = Path(__file__).resolve().parents[2] / "zoo" / "bc_traffic.pt"
+
+# cpsim.config enum values (contract in docs/ARCHITECTURE.md)
+_POLICY = 0
+_RUNNING, _GOAL, _COLLISION, _OFFROAD, _TIMEOUT = 0, 1, 2, 3, 4
+_VEHICLE = 0
+
+
+def resolve_regime(name: str) -> str:
+    """Canonical evaluation regime name; ``ValueError`` listing accepted names otherwise."""
+    key = REGIME_ALIASES.get(str(name).lower(), str(name).lower())
+    if key not in REGIMES + EXTRA_REGIMES:
+        raise ValueError(f"regimes: unknown regime {name!r}; accepted: "
+                         f"{list(REGIMES + EXTRA_REGIMES) + sorted(REGIME_ALIASES)}")
+    return key
+
+
+def resolve_split(name: str) -> tuple[str, ...]:
+    """``interactive``, ``random`` or ``both`` -> tuple of split names."""
+    key = str(name).lower()
+    if key == "both":
+        return SPLITS
+    if key not in SPLITS:
+        raise ValueError(f"split: unknown split {name!r}; accepted: {list(SPLITS) + ['both']}")
+    return (key,)
+
+
+# ============================================================================ tasks
+@dataclasses.dataclass(frozen=True)
+class Task:
+    """One evaluation task: a scenario whose ``ego_index`` is the ego, in a named split."""
+
+    split: str
+    index: int  # position within its split
+    scenario: Any  # cpsim.Scenario
+
+    @property
+    def scenario_id(self) -> str:
+        return self.scenario.id
+
+    @property
+    def ego(self) -> int:
+        return int(self.scenario.ego_index)
+
+
+def make_tasks(pool: str | os.PathLike | Sequence[Any] = "procedural", split: str = "both", n: int = 50,
+               seed: int = 0, pool_size: int | None = None) -> list[Task]:
+    """Interactive-N and/or Random-N tasks from an evaluation pool.
+
+    Args:
+        pool: ``"procedural"`` (``cpsim.scenario.eval_pool(pool_size, seed)``, disjoint
+            from the training seeds), a folder of WOMD JSON / ``.npz`` files, or a list
+            of scenarios.
+        split: ``interactive``, ``random`` or ``both``.
+        n: tasks per split; clamped to what the pool offers (Interactive: eligible
+            scenarios), an empty split raises ``ValueError``.
+        seed: pool seed and Random-N draw.
+        pool_size: procedural pool size (default ``4 n``, so Interactive-N picks the most
+            interactive quarter).
+    """
+    from cpsim.scenario import splits as S
+
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n: expected a positive integer, got {n!r}")
+    names = resolve_split(split)
+    if isinstance(pool, (str, os.PathLike)):
+        if str(pool) == "procedural":
+            from cpsim.scenario import eval_pool
+
+            scenarios = list(eval_pool(pool_size or 4 * int(n), seed))
+        else:
+            path = Path(pool)
+            if not path.is_dir():
+                raise ValueError(f"pool: {str(pool)!r} is neither 'procedural' nor a folder")
+            from cpsim.scenario import load_dir
+
+            loaded = load_dir(path)
+            scenarios = list(loaded[0] if isinstance(loaded, tuple) else loaded)
+    else:
+        scenarios = list(pool)
+    if not scenarios:
+        raise ValueError(f"pool: {pool!r} holds no scenarios")
+    tasks: list[Task] = []
+    for name in names:
+        if name == "interactive":
+            eligible = sum(t.eligible for t in S.interactivity_report(scenarios))
+            chosen = S.interactive_split(scenarios, min(int(n), eligible)) if eligible else []
+        else:
+            chosen = S.random_split(scenarios, min(int(n), len(scenarios)), seed)
+        if not chosen:
+            raise ValueError(f"split: the {name} split of pool {str(pool)!r} is empty "
+                             f"(no scenario eligible among {len(scenarios)})")
+        tasks += [Task(name, i, sc) for i, sc in enumerate(chosen)]
+    return tasks
+
+
+# ============================================================================ policies
+class EgoPolicy:
+    """What drives the ego. Subclasses: :class:`ModelEgo`, :class:`FunctionEgo`,
+    :class:`ControllerEgo`.
+
+    Attributes:
+        label: row name in the tables.
+        checkpoint: where it came from (path or description).
+        controller: ``cpsim.Controller`` value of the ego slot (POLICY for learned policies).
+        obs_size: observation size the policy expects (None: any).
+    """
+
+    label: str = "policy"
+    checkpoint: str = ""
+    controller: int = _POLICY
+    obs_size: int | None = None
+
+    def reset(self, n: int) -> None:
+        """Start ``n`` new episodes (clears recurrent memory)."""
+
+    def act(self, obs: np.ndarray, episode_start: np.ndarray) -> np.ndarray:
+        """(n, D) float32 observations -> (n,) int64 deterministic actions."""
+        return np.zeros(obs.shape[0], np.int64)
+
+
+class ControllerEgo(EgoPolicy):
+    """The ego follows a built-in controller (``replay``/``expert``, ``idm``, ``static``)."""
+
+    def __init__(self, name: str):
+        key = name.lower()
+        if key not in EGO_CONTROLLERS:
+            raise ValueError(f"policy: unknown built-in controller {name!r}; accepted: {sorted(EGO_CONTROLLERS)}")
+        self.label = "expert-replay" if key in ("replay", "expert") else key
+        self.checkpoint = f"controller:{key}"
+        self.controller = EGO_CONTROLLERS[key]
+
+
+class ModelEgo(EgoPolicy):
+    """An SB3 model (PPO, RecurrentPPO, CounterPlay) or anything with SB3's ``predict``.
+
+    Recurrent state is kept per ego, batched as the model returns it.
+    """
+
+    def __init__(self, model: Any, label: str = "policy", checkpoint: str = ""):
+        if not hasattr(model, "predict"):
+            raise ValueError("policy: model has no predict(obs, state, episode_start, deterministic)")
+        self.model = model
+        self.label = label
+        self.checkpoint = checkpoint
+        space = getattr(model, "observation_space", None)
+        shape = getattr(space, "shape", None)
+        self.obs_size = int(np.prod(shape)) if shape else getattr(model, "obs_size", None)
+        self._state: tuple[np.ndarray, ...] | None = None
+
+    def reset(self, n: int) -> None:
+        self._state = None
+
+    def act(self, obs: np.ndarray, episode_start: np.ndarray) -> np.ndarray:
+        actions, self._state = self.model.predict(obs, state=self._state, episode_start=episode_start,
+                                                  deterministic=True)
+        return np.asarray(actions).reshape(-1).astype(np.int64)
+
+
+class FunctionEgo(EgoPolicy):
+    """A plain callable ``f(obs (n, D)) -> (n,) actions``."""
+
+    def __init__(self, fn: Callable[[np.ndarray], Any], label: str = "callable"):
+        self.fn = fn
+        self.label = label
+        self.checkpoint = getattr(fn, "__name__", "callable")
+
+    def act(self, obs: np.ndarray, episode_start: np.ndarray) -> np.ndarray:
+        return np.asarray(self.fn(obs)).reshape(-1).astype(np.int64)
+
+
+def load_model(path: str | os.PathLike, argument: str = "policy") -> Any:
+    """Load a checkpoint: an SB3 ``.zip`` (CounterPlay, RecurrentPPO or PPO) or a BC ``.pt``.
+
+    Raises ``ValueError`` naming the argument and the file when nothing can load it.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"{argument}: checkpoint {str(p)!r} does not exist")
+    if p.suffix == ".pt":
+        from cpalgo.bc import BCPolicy
+
+        try:
+            return BCPolicy.load(p)
+        except Exception as exc:  # noqa: BLE001 - reported with the file name
+            raise ValueError(f"{argument}: cannot load BC checkpoint {str(p)!r}: {exc}") from None
+    loaders: list[Any] = []
+    try:
+        from cpalgo.counterplay import CounterPlay  # type: ignore[attr-defined]
+
+        loaders.append(CounterPlay)
+    except Exception:  # noqa: BLE001 - the algorithm may not be importable yet
+        pass
+    from sb3_contrib import RecurrentPPO
+    from stable_baselines3 import PPO
+
+    loaders += [RecurrentPPO, PPO]
+    errors = []
+    for cls in loaders:
+        try:
+            return cls.load(str(p), device="cpu")
+        except Exception as exc:  # noqa: BLE001 - try the next algorithm class
+            errors.append(f"{cls.__name__}: {type(exc).__name__}: {exc}")
+    raise ValueError(f"{argument}: cannot load checkpoint {str(p)!r} ({'; '.join(errors)[:400]})")
+
+
+def as_ego_policy(policy: Any, label: str | None = None) -> EgoPolicy:
+    """Wrap a policy spec: an :class:`EgoPolicy`, a built-in controller name
+    (``replay``/``expert``, ``idm``, ``static``), a checkpoint path, an SB3 model or a callable."""
+    if isinstance(policy, EgoPolicy):
+        if label:
+            policy.label = label
+        return policy
+    if isinstance(policy, (str, os.PathLike)):
+        s = str(policy)
+        if s.lower() in EGO_CONTROLLERS:
+            ego = ControllerEgo(s)
+            if label:
+                ego.label = label
+            return ego
+        model = load_model(s, "policy")
+        return ModelEgo(model, label or Path(s).stem, checkpoint=s)
+    if hasattr(policy, "predict"):
+        return ModelEgo(policy, label or type(policy).__name__, checkpoint=type(policy).__name__)
+    if callable(policy):
+        return FunctionEgo(policy, label or getattr(policy, "__name__", "callable"))
+    raise ValueError(f"policy: expected a checkpoint path, controller name, SB3 model or callable, "
+                     f"got {type(policy).__name__}")
+
+
+def _obs_size_of(model: Any) -> int | None:
+    shape = getattr(getattr(model, "observation_space", None), "shape", None)
+    return int(np.prod(shape)) if shape else getattr(model, "obs_size", None)
+
+
+def check_obs_size(model: Any, expected: int, argument: str) -> None:
+    """Raise ``ValueError`` when a model's observation size differs from the simulator's."""
+    size = model.obs_size if isinstance(model, EgoPolicy) else _obs_size_of(model)
+    if size is not None and int(size) != int(expected):
+        raise ValueError(f"{argument}: observation size {size} does not match the simulator's {expected} "
+                         "(checkpoint trained with another observation layout)")
+
+
+# ============================================================================ results
+@dataclasses.dataclass
+class EvalResult:
+    """All task-regime outcomes of one policy checkpoint.
+
+    Attributes:
+        label: policy name (table row); results sharing a label are checkpoints of one policy.
+        checkpoint: path or description.
+        columns: per task-regime arrays (n,): ``split``, ``regime``, ``scenario_id`` (str);
+            ``task``, ``ego``, ``steps_alive``, ``goal_step`` (-1: none), ``co_player_harm``,
+            ``outcome_class`` (int); ``goal``, ``at_fault_collision``,
+            ``non_at_fault_collision``, ``offroad``, ``timeout`` (bool); ``comfort``,
+            ``lane_align``, ``lane_center`` ([0, 1]) and ``score`` (0-100) (float).
+        trajectories: row -> recorded episode (``xy`` (A, T, 2), ``heading`` (A, T),
+            ``alive`` (A, T), ``sizes`` (A, 2), ``outcome`` (A,), ``goal_xy`` (2,)) for
+            the rows asked for with ``record``.
+        meta: run settings (deploy condition, timings, ...).
+    """
+
+    label: str
+    checkpoint: str
+    columns: dict[str, np.ndarray]
+    trajectories: dict[int, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
+    meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.columns["score"].shape[0])
+
+    def summary(self) -> dict[str, dict[str, dict[str, float]]]:
+        """``{split: {regime: metrics.summarize(...)}}`` plus ``"mean"`` over regimes per split."""
+        out: dict[str, dict[str, dict[str, float]]] = {}
+        c = self.columns
+        for split in dict.fromkeys(c["split"].tolist()):
+            per: dict[str, dict[str, float]] = {}
+            for regime in dict.fromkeys(c["regime"].tolist()):
+                m = (c["split"] == split) & (c["regime"] == regime)
+                if m.any():
+                    per[regime] = M.summarize({k: v[m] for k, v in c.items()})
+            keys = [k for k in next(iter(per.values())) if k != "n"]
+            per["mean"] = {k: float(np.mean([v[k] for v in per.values()])) for k in keys}
+            out[split] = per
+        return out
+
+
+# ============================================================================ evaluator
+def _np(x: Any) -> np.ndarray:
+    if hasattr(x, "detach"):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Settings of an evaluation run (frozen; unknown keys rejected by :meth:`from_dict`).
+
+    Attributes:
+        deploy_condition: the ego's condition: profile name (``normal``, ``halfway`` =
+            normal-aggressive, ...) or an explicit raw 10-vector.
+        max_worlds: worlds per simulator chunk (task-regimes evaluated at once).
+        max_agents: agent slots per world (None: the largest scenario, capped at 64).
+        seed: simulator seed and mix-regime draw.
+        device: simulator device (``cpu`` or ``cuda``).
+        progress: show a progress bar over task-regimes.
+        record: rows whose full episodes are kept for figures (None: none).
+    """
+
+    deploy_condition: str | tuple[float, ...] = "normal"
+    max_worlds: int = 256
+    max_agents: int | None = None
+    seed: int = 0
+    device: str = "cpu"
+    progress: bool = True
+    record: tuple[int, ...] | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "EvalConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"EvalConfig: unknown keys {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**d)
+
+    def __post_init__(self) -> None:
+        if self.max_worlds < 1:
+            raise ValueError(f"max_worlds: must be >= 1, got {self.max_worlds}")
+        if self.max_agents is not None and self.max_agents < 1:
+            raise ValueError(f"max_agents: must be >= 1, got {self.max_agents}")
+
+
+class Evaluator:
+    """Holds one simulator over a task set; evaluates any number of policies on it.
+
+    Args:
+        tasks: from :func:`make_tasks` (or any list of :class:`Task`).
+        regimes: regime names (:data:`REGIMES` by default).
+        traffic_policy: model (or checkpoint path) driving co-players in ``selfplay``,
+            ``aggressive``, ``normal``, ``cautious`` and ``mix``; needed only for those.
+        bc_policy: model or ``.pt`` path for ``bc`` (default :data:`DEFAULT_BC_PATH`).
+        config: :class:`EvalConfig`; ``sim_config``: a ``cpsim.SimConfig``.
+    """
+
+    def __init__(self, tasks: Sequence[Task], regimes: Sequence[str] = REGIMES, *,
+                 traffic_policy: Any = None, bc_policy: Any = None,
+                 config: EvalConfig | None = None, sim_config: Any = None):
+        self.config = config or EvalConfig()
+        self.tasks = list(tasks)
+        if not self.tasks:
+            raise ValueError("tasks: empty; nothing to evaluate")
+        self.regimes = [resolve_regime(r) for r in regimes]
+        if not self.regimes:
+            raise ValueError("regimes: empty; give at least one regime")
+        if len(set(self.regimes)) != len(self.regimes):
+            raise ValueError(f"regimes: duplicates in {list(regimes)}")
+        self.deploy = resolve_condition(
+            self.config.deploy_condition if isinstance(self.config.deploy_condition, str)
+            else np.asarray(self.config.deploy_condition, np.float32), "deploy_condition")
+        needs_traffic = {"selfplay", "aggressive", "normal", "cautious", "mix"} & set(self.regimes)
+        if isinstance(traffic_policy, (str, os.PathLike)):
+            traffic_policy = load_model(traffic_policy, "traffic_policy")
+        if needs_traffic and traffic_policy is None:
+            raise ValueError(f"traffic_policy: regimes {sorted(needs_traffic)} need a co-player policy "
+                             "(the self-play / conditioned anchor checkpoint)")
+        self.traffic_policy = traffic_policy
+        if "bc" in self.regimes:
+            if bc_policy is None:
+                if not DEFAULT_BC_PATH.is_file():
+                    raise ValueError(f"bc_policy: regime 'bc' needs a behaviour-cloning model; "
+                                     f"none given and {DEFAULT_BC_PATH} is missing (python -m cpalgo.bc)")
+                bc_policy = DEFAULT_BC_PATH
+            if isinstance(bc_policy, (str, os.PathLike)):
+                bc_policy = load_model(bc_policy, "bc_policy")
+        self.bc_policy = bc_policy
+
+        import cpsim
+
+        # unique scenarios (by id) -> simulator pool
+        self.scenarios: list[Any] = []
+        index: dict[str, int] = {}
+        for t in self.tasks:
+            if t.scenario_id not in index:
+                index[t.scenario_id] = len(self.scenarios)
+                self.scenarios.append(t.scenario)
+        self.scenario_index = {k: v for k, v in index.items()}
+        max_agents = self.config.max_agents or min(64, max(s.num_agents for s in self.scenarios))
+        n_items = len(self.tasks) * len(self.regimes)
+        self.num_worlds = int(min(self.config.max_worlds, n_items))
+        kwargs = {} if sim_config is None else {"config": sim_config}
+        self.sim = cpsim.Simulator(self.scenarios, num_worlds=self.num_worlds, max_agents=max_agents,
+                                   device=self.config.device, seed=self.config.seed, **kwargs)
+        self.obs_size = int(self.sim.obs_layout.size)
+        for model, arg in ((self.traffic_policy, "traffic_policy"), (self.bc_policy, "bc_policy")):
+            if model is not None:
+                check_obs_size(model, self.obs_size, arg)
+        # per-scenario vehicle table (co-player harm counts vehicles only)
+        n_max = max(s.num_agents for s in self.scenarios)
+        self._vehicle = np.zeros((len(self.scenarios), n_max + 1), bool)
+        for s, sc in enumerate(self.scenarios):
+            self._vehicle[s, :sc.num_agents] = sc.agent_types == _VEHICLE
+        self._drivers = self._make_drivers()
+        # item layout: rows ordered split -> regime -> task (tables group this way)
+        self.items = self._layout()
+
+    # ---------------------------------------------------------------- layout
+    def _make_drivers(self) -> dict[str, Any]:
+        from cpsim.envs.regimes import TrafficDriver
+
+        drivers = {}
+        for i, regime in enumerate(self.regimes):
+            if regime == "bc":
+                drv = TrafficDriver("policy", self.bc_policy, condition="normal", seed=self.config.seed + i)
+            elif regime == "selfplay":
+                drv = TrafficDriver("policy", self.traffic_policy, seed=self.config.seed + i)
+            elif regime in ("aggressive", "normal", "cautious", "mix"):
+                drv = TrafficDriver(regime, self.traffic_policy, seed=self.config.seed + i)
+            else:
+                drv = TrafficDriver(regime, None, seed=self.config.seed + i)
+            drivers[regime] = drv
+        return drivers
+
+    def _layout(self) -> dict[str, np.ndarray]:
+        splits = list(dict.fromkeys(t.split for t in self.tasks))
+        rows = [(t, r) for s in splits for r in self.regimes for t in self.tasks if t.split == s]
+        return {
+            "task": np.array([t.index for t, _ in rows], np.int64),
+            "split": np.array([t.split for t, _ in rows]),
+            "regime": np.array([r for _, r in rows]),
+            "scenario_id": np.array([t.scenario_id for t, _ in rows]),
+            "ego": np.array([t.ego for t, _ in rows], np.int64),
+            "scenario": np.array([self.scenario_index[t.scenario_id] for t, _ in rows], np.int64),
+        }
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.items["task"].shape[0])
+
+    # ---------------------------------------------------------------- run
+    def run(self, policy: Any, label: str | None = None) -> EvalResult:
+        """Evaluate one policy on every task-regime; returns its :class:`EvalResult`."""
+        ego = as_ego_policy(policy, label)
+        if ego.controller == _POLICY:
+            check_obs_size(ego, self.obs_size, f"policy {ego.checkpoint or ego.label!r}")
+        cfg = self.config
+        n = self.num_rows
+        W = self.num_worlds
+        out = _empty_columns(n)
+        record = set(cfg.record or ())
+        trajectories: dict[int, dict[str, np.ndarray]] = {}
+        bar = _progress(n, cfg.progress, ego.label)
+        t0 = time.perf_counter()
+        steps = 0
+        try:
+            for start in range(0, n, W):
+                rows = np.arange(start, min(start + W, n))
+                chunk_steps, traj = self._run_chunk(ego, rows, record)
+                steps += chunk_steps
+                self._collect(rows, out)
+                trajectories.update(traj)
+                bar.update(rows.size)
+        finally:
+            bar.close()
+        elapsed = time.perf_counter() - t0
+        cols = {k: self.items[k].copy() for k in ("split", "regime", "task", "scenario_id", "ego")}
+        cols.update(out)
+        meta = {"deploy_condition": self.deploy.tolist(), "regimes": list(self.regimes),
+                "seconds": elapsed, "task_regimes_per_second": n / max(elapsed, 1e-9),
+                "simulator_steps": steps, "num_worlds": W, "max_agents": int(self.sim.max_agents)}
+        return EvalResult(ego.label, ego.checkpoint, cols, trajectories, meta)
+
+    def _run_chunk(self, ego: EgoPolicy, rows: np.ndarray, record: set[int]
+                   ) -> tuple[int, dict[int, dict[str, np.ndarray]]]:
+        sim = self.sim
+        W, A = self.num_worlds, int(sim.max_agents)
+        k = rows.size
+        # pad a short last chunk by repeating its first row (results of padded worlds are ignored)
+        world_rows = np.concatenate([rows, np.full(W - k, rows[0], np.int64)])
+        sim.reset(scenario_index=self.items["scenario"][world_rows])
+        # ego slot: its controller and the deployment condition; co-players: per regime
+        ctrl = _np(sim.controllers).astype(np.int32).copy()
+        ctrl[:, 0] = ego.controller
+        sim.set_controllers(ctrl)
+        cond = _np(sim.conditions).astype(np.float32).copy()
+        cond[:, 0] = self.deploy
+        sim.set_conditions(cond)
+        regimes = self.items["regime"][world_rows]
+        active = []
+        for regime, drv in self._drivers.items():
+            worlds = np.flatnonzero(regimes == regime)
+            if worlds.size:
+                drv.assign(sim, worlds)
+                active.append(drv)
+        ego.reset(W)
+        episode_start = np.ones(W, bool)
+        keep = [i for i, r in enumerate(world_rows[:k]) if int(r) in record]
+        rec: dict[str, list[np.ndarray]] = {"xy": [], "heading": [], "alive": []}
+        horizon = int(sim.config.episode_steps)
+        actions = np.zeros((W, A), np.int64)
+        steps = 0
+        for _ in range(horizon):
+            if keep:
+                self._record(rec, keep)
+            actions[:] = 0
+            if ego.controller == _POLICY:
+                obs = _np(sim.obs)
+                actions[:, 0] = ego.act(np.ascontiguousarray(obs[:, 0], np.float32), episode_start)
+                episode_start[:] = False
+            else:
+                obs = None
+            for drv in active:
+                drv.act(obs, out=actions)
+            sim.step(actions)
+            steps += 1
+            if bool(_np(sim.step_count).min() >= horizon):
+                break
+        traj: dict[int, dict[str, np.ndarray]] = {}
+        if keep:
+            self._record(rec, keep)
+            sizes, goal = self._slot_sizes_goals(keep)
+            outcome = _np(sim.outcome)
+            for j, w in enumerate(keep):
+                traj[int(world_rows[w])] = {
+                    "xy": np.stack([x[j] for x in rec["xy"]], 1),
+                    "heading": np.stack([x[j] for x in rec["heading"]], 1),
+                    "alive": np.stack([x[j] for x in rec["alive"]], 1),
+                    "sizes": sizes[j], "goal_xy": goal[j], "outcome": outcome[w].copy(),
+                }
+        return steps, traj
+
+    def _record(self, rec: dict[str, list[np.ndarray]], worlds: list[int]) -> None:
+        sim = self.sim
+        rec["xy"].append(_np(sim.xy)[worlds].copy())
+        rec["heading"].append(_np(sim.heading)[worlds].copy())
+        rec["alive"].append(_np(sim.alive)[worlds].copy())
+
+    def _slot_sizes_goals(self, worlds: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(len(worlds), A, 2) box sizes of each slot and (len(worlds), 2) ego goals."""
+        agent_index = _np(self.sim.agent_index)[worlds]
+        scen = _np(self.sim.world_scenario)[worlds]
+        sizes = np.zeros((len(worlds), agent_index.shape[1], 2), np.float32)
+        goals = np.zeros((len(worlds), 2), np.float32)
+        for j in range(len(worlds)):  # figures only, a handful of worlds
+            sc = self.scenarios[int(scen[j])]
+            ok = agent_index[j] >= 0
+            sizes[j, ok] = sc.sizes[agent_index[j, ok]]
+            goals[j] = sc.goal_xy[sc.ego_index]
+        return sizes, goals
+
+    def _collect(self, rows: np.ndarray, out: dict[str, np.ndarray]) -> None:
+        """Read the ego's outcome and metric accumulators of the chunk into ``out[rows]``."""
+        sim = self.sim
+        k = rows.size
+        outcome = _np(sim.outcome)[:k]
+        met = {name: _np(v)[:k] for name, v in sim.metrics.items()}
+        ego_out = outcome[:, 0]
+        goal = ego_out == _GOAL
+        collision = ego_out == _COLLISION
+        offroad = ego_out == _OFFROAD
+        timeout = (ego_out == _TIMEOUT) | (ego_out == _RUNNING)
+        fault = collision & met["at_fault"][:, 0].astype(bool)
+        acc = M.metrics_from_accumulators(met["steps_alive"][:, 0], met["comfort_violations"][:, 0],
+                                          met["aligned_steps"][:, 0], met["lateral_offset_sum"][:, 0])
+        # co-player harm: other vehicles that collided or went off-road during the episode
+        agent_index = _np(sim.agent_index)[:k]
+        scen = _np(sim.world_scenario)[:k]
+        vehicle = self._vehicle[scen[:, None], agent_index] & (agent_index >= 0)
+        harmed = (met["first_collision_step"] >= 0) | (met["first_offroad_step"] >= 0)
+        harmed[:, 0] = False
+        out["goal"][rows] = goal
+        out["at_fault_collision"][rows] = fault
+        out["non_at_fault_collision"][rows] = collision & ~fault
+        out["offroad"][rows] = offroad
+        out["timeout"][rows] = timeout
+        out["comfort"][rows] = acc["comfort"]
+        out["lane_align"][rows] = acc["lane_align"]
+        out["lane_center"][rows] = acc["lane_center"]
+        out["score"][rows] = M.task_score(goal, fault, offroad, acc["comfort"], acc["lane_align"],
+                                          acc["lane_center"])
+        out["co_player_harm"][rows] = (harmed & vehicle).sum(1)
+        out["steps_alive"][rows] = met["steps_alive"][:, 0]
+        out["goal_step"][rows] = met["goal_step"][:, 0]
+        out["outcome_class"][rows] = M.outcome_class(goal, fault, collision & ~fault, offroad)
+
+
+def _empty_columns(n: int) -> dict[str, np.ndarray]:
+    return {
+        "goal": np.zeros(n, bool), "at_fault_collision": np.zeros(n, bool),
+        "non_at_fault_collision": np.zeros(n, bool), "offroad": np.zeros(n, bool),
+        "timeout": np.zeros(n, bool), "comfort": np.zeros(n), "lane_align": np.zeros(n),
+        "lane_center": np.zeros(n), "score": np.zeros(n), "co_player_harm": np.zeros(n, np.int64),
+        "steps_alive": np.zeros(n, np.int64), "goal_step": np.full(n, -1, np.int64),
+        "outcome_class": np.zeros(n, np.int8),
+    }
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, enabled: bool, label: str) -> Any:
+    if not enabled:
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=f"evaluate {label}", unit="task-regime", leave=False)
+
+
+# ============================================================================ convenience
+def evaluate(policy: Any, tasks: Sequence[Task], regimes: Sequence[str] = REGIMES,
+             deploy_condition: str | Sequence[float] = "normal", *, traffic_policy: Any = None,
+             bc_policy: Any = None, label: str | None = None, **config: Any) -> EvalResult:
+    """Evaluate one policy on ``tasks`` x ``regimes`` (see :class:`Evaluator`).
+
+    ``policy``: checkpoint path, SB3 model, callable or built-in controller name
+    (``replay``/``expert``, ``idm``). Extra keyword arguments go to :class:`EvalConfig`.
+    """
+    dc = deploy_condition if isinstance(deploy_condition, str) else tuple(float(x) for x in deploy_condition)
+    cfg = EvalConfig.from_dict({"deploy_condition": dc, **config})
+    ev = Evaluator(tasks, regimes, traffic_policy=traffic_policy, bc_policy=bc_policy, config=cfg)
+    return ev.run(policy, label)
+
+
+def evaluate_checkpoints(policies: Sequence[Any], tasks: Sequence[Task], regimes: Sequence[str] = REGIMES,
+                         deploy_condition: str | Sequence[float] = "normal", *, labels: Sequence[str] | None = None,
+                         traffic_policy: Any = None, bc_policy: Any = None, **config: Any) -> list[EvalResult]:
+    """Evaluate several policies / checkpoints on the same task-regimes (one simulator).
+
+    Checkpoints that share a label are aggregated as seeds of one policy by
+    :func:`cpalgo.evaluate.tables.summarize_results` (mean and std).
+    """
+    dc = deploy_condition if isinstance(deploy_condition, str) else tuple(float(x) for x in deploy_condition)
+    cfg = EvalConfig.from_dict({"deploy_condition": dc, **config})
+    egos = [as_ego_policy(p, labels[i] if labels else None) for i, p in enumerate(policies)]
+    ev = Evaluator(tasks, regimes, traffic_policy=traffic_policy, bc_policy=bc_policy, config=cfg)
+    for e in egos:  # fail before any run when a checkpoint does not fit the simulator
+        if e.controller == _POLICY:
+            check_obs_size(e, ev.obs_size, f"policy {e.checkpoint or e.label!r}")
+    return [ev.run(e) for e in egos]
