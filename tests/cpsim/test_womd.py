@@ -144,6 +144,7 @@ def test_round_trip_json_cache_exact(tmp_path: Path) -> None:
     cache = save_cache(s, tmp_path / "rt.npz", origin=src)
     back = load(cache)
     assert back == s and back.source == s.source and back.family == "womd"
+    assert load(save_cache(s, tmp_path / "raw.npz", compress=False)) == s
     for name, arr in s.arrays().items():
         assert getattr(back, name).dtype == arr.dtype, name
     # A field that differs breaks equality (the round-trip assertion is not vacuous).
@@ -303,8 +304,9 @@ def test_bad_caches_raise(tmp_path: Path) -> None:
     with pytest.raises(ScenarioError, match="truncated.npz.*not a readable"):
         load(truncated)
 
+    meta = json.loads(str(payload["meta"]))
     old = tmp_path / "old.npz"
-    np.savez(old, **{**payload, "format_version": np.array(CACHE_FORMAT_VERSION + 1)})
+    np.savez(old, **{**payload, "meta": np.array(json.dumps({**meta, "format_version": CACHE_FORMAT_VERSION + 1}))})
     with pytest.raises(ScenarioError, match="old.npz: field 'format_version'"):
         load(old)
 
@@ -315,8 +317,13 @@ def test_bad_caches_raise(tmp_path: Path) -> None:
 
     foreign = tmp_path / "foreign.npz"
     np.savez(foreign, a=np.zeros(3))
-    with pytest.raises(ScenarioError, match="foreign.npz: field 'format_version'"):
+    with pytest.raises(ScenarioError, match="foreign.npz: field 'meta'"):
         load(foreign)
+
+    no_id = tmp_path / "no_id.npz"
+    np.savez(no_id, **{**payload, "meta": np.array(json.dumps({k: v for k, v in meta.items() if k != "id"}))})
+    with pytest.raises(ScenarioError, match="no_id.npz: field 'meta.id'"):
+        load(no_id)
 
     corrupt = tmp_path / "corrupt.npz"
     bad = dict(payload)
@@ -335,9 +342,11 @@ def test_failed_cache_write_leaves_nothing(tmp_path: Path, monkeypatch: pytest.M
         raise OSError("disk full")
 
     monkeypatch.setattr(womd.np, "savez", broken_savez)
-    with pytest.raises(OSError, match="disk full"):
-        save_cache(s, target)
-    assert list(target.parent.iterdir()) == []
+    monkeypatch.setattr(womd.np, "savez_compressed", broken_savez)
+    for compress in (True, False):
+        with pytest.raises(OSError, match="disk full"):
+            save_cache(s, target, compress=compress)
+        assert list(target.parent.iterdir()) == []
 
 
 # ----------------------------------------------------------------------------- folders
