@@ -1,0 +1,243 @@
+"""Traffic regimes: who drives the co-players (every agent slot except the ego).
+
+Shared by :class:`cpsim.envs.drive.DriveEnv` and the BehaviorBench-style evaluation.
+Everything is batched over worlds: :meth:`TrafficDriver.assign` sets controllers and
+conditions for the co-players of any subset of worlds of a :class:`cpsim.Simulator`, and
+:meth:`TrafficDriver.act` returns actions for every policy-driven co-player of every
+world in one model call.
+
+Regimes (:data:`REGIMES`):
+
+========== ======================================================================
+replay     co-players follow their logs (``Controller.REPLAY``)
+idm        co-players follow their logged route with IDM (``Controller.IDM``)
+static     co-players stand still at their t0 pose (``Controller.STATIC``)
+policy     co-players are driven by ``model`` (SB3 model or callable) under
+           ``condition`` (default: the simulator's own draw at reset)
+aggressive ``model`` under the aggressive profile
+normal     ``model`` under the normal profile
+cautious   ``model`` under the cautious profile
+mix        ``model``; each co-player draws one of aggressive / normal / cautious
+           (seeded RNG, redrawn at every :meth:`~TrafficDriver.assign`)
+========== ======================================================================
+
+Aliases (:data:`REGIME_ALIASES`): ``expert`` = replay; ``log-imitation`` and
+``self-play`` = policy (the evaluation passes the matching model).
+
+Co-players are the *controllable* agents of a world (vehicles valid at t0 with a goal,
+:attr:`Scenario.controllable`) other than the ego slot; the remaining agents
+(pedestrians, cyclists, agents that appear later) keep the simulator's default
+controller (log replay).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from cpsim.conditions import NUM_CONDITION_FIELDS, profile, resolve_condition
+
+REGIMES: tuple[str, ...] = ("replay", "idm", "static", "policy", "aggressive", "normal", "cautious", "mix")
+REGIME_ALIASES: dict[str, str] = {"expert": "replay", "log-imitation": "policy", "self-play": "policy"}
+#: regimes whose co-players are POLICY agents and need a model
+POLICY_REGIMES: tuple[str, ...] = ("policy", "aggressive", "normal", "cautious", "mix")
+MIX_PROFILES: tuple[str, ...] = ("aggressive", "normal", "cautious")
+
+# cpsim.config.Controller values (contract in docs/ARCHITECTURE.md)
+_POLICY, _REPLAY, _IDM, _STATIC = 0, 1, 2, 3
+_FIXED_CONTROLLER = {"replay": _REPLAY, "idm": _IDM, "static": _STATIC}
+
+
+def resolve_regime(name: str) -> str:
+    """Canonical regime name; raises ``ValueError`` listing the accepted names."""
+    if not isinstance(name, str):
+        raise ValueError(f"regime must be a string, got {type(name).__name__}")
+    key = REGIME_ALIASES.get(name, name)
+    if key not in REGIMES:
+        raise ValueError(
+            f"unknown regime {name!r}; accepted: {list(REGIMES) + sorted(REGIME_ALIASES)}"
+        )
+    return key
+
+
+def _to_numpy(x: Any) -> np.ndarray:
+    if hasattr(x, "detach"):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def controllable_table(scenarios: Sequence[Any]) -> np.ndarray:
+    """(S, N_max) bool: ``table[s, i]`` = agent i of scenario s is controllable (False past N)."""
+    n_max = max(sc.num_agents for sc in scenarios)
+    table = np.zeros((len(scenarios), n_max + 1), bool)  # last column: padding for index -1
+    for s, sc in enumerate(scenarios):  # once per pool, not per step
+        table[s, : sc.num_agents] = sc.controllable
+    return table
+
+
+class TrafficDriver:
+    """Drives the co-players of a batched simulator under one traffic regime.
+
+    Args:
+        regime: one of :data:`REGIMES` (or an alias).
+        model: for policy regimes, an SB3 model (anything with
+            ``predict(obs, state, episode_start, deterministic)``) or a callable
+            ``f(obs (n, D) float32) -> (n,) actions``. Ignored (may be None) otherwise.
+        condition: ``policy`` regime only: co-players' condition, a profile name or a raw
+            10-vector; None keeps the simulator's draw at reset.
+        deterministic: passed to ``model.predict``.
+        seed: seeds the per-agent profile draw of ``mix``.
+        ego_slot: the slot driven by the caller (never a co-player).
+
+    Each co-player slot keeps its own recurrent state (batched as
+    ``(layers, W * A, hidden)`` arrays); :meth:`assign` marks the slots of the reset
+    worlds as episode starts, so a recurrent model starts them from zero memory.
+    """
+
+    def __init__(self, regime: str, model: Any = None, *, condition: str | Sequence[float] | None = None,
+                 deterministic: bool = True, seed: int | None = 0, ego_slot: int = 0):
+        self.regime = resolve_regime(regime)
+        if self.regime in POLICY_REGIMES:
+            if model is None:
+                raise ValueError(
+                    f"regime {regime!r} needs a co-player model (coplayer_model / model); regimes "
+                    f"that need none: {sorted(_FIXED_CONTROLLER)}"
+                )
+            if not (hasattr(model, "predict") or callable(model)):
+                raise ValueError("model must be an SB3 model (with .predict) or a callable obs -> actions")
+        if condition is not None and self.regime != "policy":
+            raise ValueError(f"condition applies to the 'policy' regime only, not {self.regime!r}")
+        self.model = model
+        self.condition = None if condition is None else resolve_condition(condition, "condition")
+        self.deterministic = bool(deterministic)
+        self.ego_slot = int(ego_slot)
+        self.rng = np.random.default_rng(seed)
+        self._sim: Any = None
+        self._table: np.ndarray | None = None
+        self._coplayer: np.ndarray | None = None      # (W, A) bool
+        self._state: Any = None                        # recurrent state over W * A slots
+        self._episode_start: np.ndarray | None = None  # (W * A,) bool
+        #: (W, A) int8 index into MIX_PROFILES drawn for each co-player (-1: none), for logs
+        self.mix_choice: np.ndarray | None = None
+
+    @property
+    def needs_model(self) -> bool:
+        return self.regime in POLICY_REGIMES
+
+    def seed(self, seed: int | None) -> None:
+        """Reseed the mix draw."""
+        self.rng = np.random.default_rng(seed)
+
+    def _bind(self, sim: Any) -> None:
+        if self._sim is not sim:
+            self._sim = sim
+            self._table = controllable_table(sim.scenarios)
+            w, a = sim.num_worlds, sim.max_agents
+            self._coplayer = np.zeros((w, a), bool)
+            self._episode_start = np.ones(w * a, bool)
+            self._state = None
+            self.mix_choice = np.full((w, a), -1, np.int8)
+
+    def coplayer_mask(self, sim: Any, worlds: np.ndarray | None = None) -> np.ndarray:
+        """(len(worlds), A) bool: slots of controllable agents other than the ego slot."""
+        self._bind(sim)
+        worlds = np.arange(sim.num_worlds) if worlds is None else np.asarray(worlds, np.int64)
+        agent_index = _to_numpy(sim.agent_index)[worlds]
+        scen = _to_numpy(sim.world_scenario)[worlds]
+        mask = self._table[scen[:, None], agent_index]  # index -1 hits the padding column (False)
+        mask[:, self.ego_slot] = False
+        return mask
+
+    def assign(self, sim: Any, worlds: np.ndarray | Sequence[int] | None = None,
+               conditions: np.ndarray | None = None) -> np.ndarray:
+        """Set co-player controllers (and conditions for policy regimes) of ``worlds``.
+
+        Call right after ``sim.reset(worlds)``. ``conditions`` (len(worlds), A, 10): the
+        raw conditions to start from (default: ``sim.conditions`` of those worlds); the
+        co-player rows are overwritten and the result is written with
+        ``sim.set_conditions``. Returns the (len(worlds), A, 10) conditions written.
+        """
+        self._bind(sim)
+        worlds = np.arange(sim.num_worlds) if worlds is None else np.asarray(worlds, np.int64).reshape(-1)
+        co = self.coplayer_mask(sim, worlds)
+        self._coplayer[worlds] = co
+        ctrl = _to_numpy(sim.controllers)[worlds].astype(np.int32)
+        cond = (_to_numpy(sim.conditions)[worlds] if conditions is None
+                else np.asarray(conditions, np.float32)).astype(np.float32).copy()
+        if cond.shape != (worlds.size, sim.max_agents, NUM_CONDITION_FIELDS):
+            raise ValueError(f"conditions: expected shape {(worlds.size, sim.max_agents, NUM_CONDITION_FIELDS)}, "
+                             f"got {cond.shape}")
+        self.mix_choice[worlds] = -1
+        if self.regime in _FIXED_CONTROLLER:
+            ctrl[co] = _FIXED_CONTROLLER[self.regime]
+        else:
+            ctrl[co] = _POLICY
+            if self.regime == "mix":
+                choice = self.rng.integers(0, len(MIX_PROFILES), size=co.shape).astype(np.int8)
+                table = np.stack([profile(p) for p in MIX_PROFILES])
+                cond[co] = table[choice[co]]
+                self.mix_choice[worlds] = np.where(co, choice, -1)
+            elif self.regime in MIX_PROFILES:
+                cond[co] = profile(self.regime)
+            elif self.condition is not None:
+                cond[co] = self.condition
+        sim.set_controllers(ctrl, worlds)
+        sim.set_conditions(cond, worlds)
+        a = sim.max_agents
+        flat = (worlds[:, None] * a + np.arange(a)[None, :]).reshape(-1)
+        self._episode_start[flat] = True
+        return cond
+
+    def act(self, obs: Any = None, out: np.ndarray | None = None) -> np.ndarray:
+        """Actions for every policy-driven co-player still alive, batched over all worlds.
+
+        ``obs``: (W, A, D) observations (default ``sim.obs``); ``out``: optional (W, A)
+        integer array to fill (other entries untouched). Returns the (W, A) int64 actions
+        (zeros where no co-player acts). Fixed-controller regimes return ``out`` unchanged.
+        """
+        sim = self._sim
+        if sim is None:
+            raise RuntimeError("TrafficDriver.act called before assign(sim, worlds)")
+        w, a = sim.num_worlds, sim.max_agents
+        actions = np.zeros((w, a), np.int64) if out is None else out
+        if not self.needs_model:
+            return actions
+        obs = _to_numpy(sim.obs if obs is None else obs)
+        acting = (self._coplayer & _to_numpy(sim.policy_mask)).reshape(-1)
+        idx = np.flatnonzero(acting)
+        if idx.size == 0:
+            return actions
+        batch = np.ascontiguousarray(obs.reshape(w * a, -1)[idx], dtype=np.float32)
+        if hasattr(self.model, "predict"):
+            state = None
+            if self._state is not None:
+                state = tuple(s[:, idx] for s in self._state)
+            act, new_state = self.model.predict(
+                batch, state=state, episode_start=self._episode_start[idx], deterministic=self.deterministic
+            )
+            if new_state is not None:
+                if self._state is None:  # first call: allocate per-slot memory
+                    self._state = tuple(np.zeros((s.shape[0], w * a, *s.shape[2:]), s.dtype) for s in new_state)
+                for full, part in zip(self._state, new_state):
+                    full[:, idx] = part
+        else:
+            act = self.model(batch)
+        self._episode_start[idx] = False
+        act = np.asarray(_to_numpy(act)).reshape(-1).astype(np.int64)
+        if act.size != idx.size:
+            raise ValueError(f"model returned {act.size} actions for {idx.size} co-players")
+        actions[idx // a, idx % a] = act
+        return actions
+
+
+def make_driver(regime: str, model: Any = None, **kwargs: Any) -> TrafficDriver:
+    """Shorthand for :class:`TrafficDriver` (kept for the evaluation's call sites)."""
+    return TrafficDriver(regime, model, **kwargs)
+
+
+__all__ = ["REGIMES", "REGIME_ALIASES", "POLICY_REGIMES", "MIX_PROFILES", "TrafficDriver",
+           "resolve_regime", "controllable_table", "make_driver"]
+
+# Callable type of a co-player model that is not an SB3 model (documentation only).
+CoplayerFn = Callable[[np.ndarray], np.ndarray]

@@ -1,0 +1,321 @@
+"""SB3 self-play front-end: one VecEnv index per agent slot of a batched Simulator."""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Sequence
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
+
+from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions
+
+OUTCOME_NAMES: tuple[str, ...] = ("running", "goal", "collision", "offroad", "timeout")
+CONDITION_MODES = ("train",)
+
+
+def _np(x: Any) -> np.ndarray:
+    """Torch tensor or array -> NumPy (a view when possible; callers copy what they keep)."""
+    if hasattr(x, "detach"):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_dir: str | None = None,
+                      num_scenarios: int | None = None, seed: int = 0) -> list:
+    """Scenario list from exactly one source: a list, a procedural family, a WOMD folder,
+    or (none given) the procedural training pool.
+
+    ``num_scenarios`` caps the count (procedural families: how many seeds to generate).
+    """
+    from cpsim import scenario as scen_mod
+    from cpsim.scenario.datatypes import Scenario
+
+    given = [n for n, v in (("scenarios", scenarios), ("family", family), ("womd_dir", womd_dir)) if v is not None]
+    if len(given) > 1:
+        raise ValueError(f"give only one of scenarios / family / womd_dir, got {given}")
+    if num_scenarios is not None and int(num_scenarios) < 1:
+        raise ValueError(f"num_scenarios must be >= 1, got {num_scenarios}")
+    if scenarios is not None:
+        if isinstance(scenarios, Scenario):
+            scenarios = [scenarios]
+        out = list(scenarios)
+        if not out:
+            raise ValueError("scenarios: empty list")
+        for k, s in enumerate(out):
+            if not isinstance(s, Scenario):
+                raise ValueError(f"scenarios[{k}]: expected a cpsim.Scenario, got {type(s).__name__}")
+    elif family is not None:
+        families = tuple(scen_mod.FAMILIES)
+        if family not in families:
+            raise ValueError(f"family: unknown procedural family {family!r}; accepted: {list(families)}")
+        n = 16 if num_scenarios is None else int(num_scenarios)
+        out = list(scen_mod.pool(n, seed, families=[family]))
+    elif womd_dir is not None:
+        out = list(scen_mod.load_dir(womd_dir))
+        if not out:
+            raise ValueError(f"womd_dir: no scenario files in {womd_dir!r}")
+    else:
+        out = list(scen_mod.train_pool())
+    if num_scenarios is not None:
+        out = out[: int(num_scenarios)]
+    return out
+
+
+def make_simulator(scenarios: list, num_worlds: int, max_agents: int, *, dynamics: str | None = None,
+                   config: Any = None, device: str = "cpu", seed: int = 0, **overrides: Any) -> Any:
+    """Build a :class:`cpsim.Simulator`; ``config`` (SimConfig or mapping) plus keyword
+    overrides of its fields (unknown keys raise ``ValueError`` listing the valid ones)."""
+    from cpsim.config import SimConfig
+    from cpsim.simulator import Simulator
+
+    base = SimConfig.from_dict(config) if not isinstance(config, SimConfig) else config
+    changes = dict(overrides)
+    if dynamics is not None:
+        changes["dynamics"] = dynamics
+    cfg = base.replace(**changes) if changes else base
+    if int(num_worlds) < 1:
+        raise ValueError(f"num_worlds must be >= 1, got {num_worlds}")
+    if int(max_agents) < 1:
+        raise ValueError(f"max_agents must be >= 1, got {max_agents}")
+    return Simulator(scenarios, num_worlds=int(num_worlds), max_agents=int(max_agents), config=cfg,
+                     device=device, seed=int(seed))
+
+
+def observation_space_for(sim: Any) -> spaces.Box:
+    """Box(-inf, inf, (D,), float32) for the simulator's observation vector.
+
+    Features are normalised to about [-1, 1] but not clipped, so the bounds are open.
+    """
+    d = int(sim.obs_layout.size)
+    return spaces.Box(low=-np.inf, high=np.inf, shape=(d,), dtype=np.float32)
+
+
+class SelfPlayVecEnv(VecEnv):
+    """Self-play over a batched :class:`cpsim.Simulator`: every agent slot is one env index.
+
+    ``num_envs = num_worlds * max_agents``; index ``i = w * max_agents + a`` is slot ``a`` of
+    world ``w``. Every POLICY agent is driven by the same (learning) policy through its
+    index; the simulator decides everything else (replay / IDM agents, events, rewards).
+
+    Args:
+        scenarios: list of :class:`~cpsim.scenario.Scenario`; None = the procedural
+            training pool (``cpsim.scenario.train_pool()``). ``family`` / ``womd_dir``
+            (keyword) pick a procedural family or a folder of WOMD files instead.
+        num_worlds, max_agents: W and A.
+        dynamics: "jerk" (Discrete(12)) or "classic" (Discrete(91)).
+        condition: "train" (default: every agent's condition is drawn from p_train at each
+            world reset), a profile name (e.g. "normal") or a raw 10-vector, fixed for
+            every agent (deployment-style runs).
+        seed: seeds scenario draws and condition draws (and the simulator).
+        config: a ``SimConfig`` or mapping; other keyword arguments override its fields.
+        device: "cpu" or "cuda[:n]".
+        render_mode: None or "rgb_array" (``render()`` tiles one top-down frame per world,
+            camera on the whole scene; at most ``render_worlds`` worlds).
+
+    Episodes and auto-reset:
+        A world resets (new scenario, new conditions) when its ``episode_steps`` decisions
+        are up or no POLICY agent is left alive (``sim.world_done``).
+
+    Active and inactive slots (what an algorithm must mask):
+        A slot is *active* for an observation when it holds a POLICY agent that is alive
+        (``sim.policy_mask``). ``active_mask()`` gives the (num_envs,) mask of the
+        observation returned last; ``infos[i]["active"]`` is the same flag after a step.
+
+        * An active slot whose agent ends its episode on this step (goal, collision,
+          off-road, timeout) emits ``done=True``, its last reward,
+          ``infos[i]["terminal_observation"]`` (the observation at the end),
+          ``"TimeLimit.truncated"`` (True for timeouts), ``"is_success"`` (goal reached)
+          and ``"outcome"`` ("goal" / "collision" / "offroad" / "timeout"). If its world
+          resets on the same step the returned observation is the new episode's first
+          observation (SB3 auto-reset semantics), otherwise the slot turns inactive.
+        * An inactive slot (no agent, a non-POLICY agent, or an agent removed until its
+          world resets) emits a zero observation, reward 0.0, ``done=False`` and
+          ``infos[i]["active"] = False``, and its action is ignored. It never emits
+          ``done=True``: when its world resets and a new agent takes the slot, the slot
+          simply becomes active again with ``done=False``, so an unmasked PPO sees zero
+          observations with zero reward between episodes but never a spurious episode end.
+          Under ``VecMonitor`` those steps count into the next episode's length, not its
+          return.
+
+    Observations and rewards are fresh NumPy float32 arrays (copies, never views on
+    simulator memory). ``get_attr`` / ``set_attr`` / ``env_method`` act on this one
+    object and return one entry per requested index.
+    """
+
+    def __init__(self, scenarios: Sequence[Any] | None = None, num_worlds: int = 4, max_agents: int = 16,
+                 *, family: str | None = None, womd_dir: str | None = None, num_scenarios: int | None = None,
+                 dynamics: str | None = None, condition: str | Sequence[float] | np.ndarray = "train",
+                 seed: int = 0, config: Any = None, device: str = "cpu", render_mode: str | None = None,
+                 render_worlds: int = 4, **config_overrides: Any):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array']")
+        self.scenarios = resolve_scenarios(scenarios, family=family, womd_dir=womd_dir,
+                                           num_scenarios=num_scenarios, seed=seed)
+        self.sim = make_simulator(self.scenarios, num_worlds, max_agents, dynamics=dynamics, config=config,
+                                  device=device, seed=seed, **config_overrides)
+        self.num_worlds = int(self.sim.num_worlds)
+        self.max_agents = int(self.sim.max_agents)
+        self.obs_layout = self.sim.obs_layout
+        if isinstance(condition, str) and condition in CONDITION_MODES:
+            self.fixed_condition: np.ndarray | None = None
+        else:
+            self.fixed_condition = resolve_condition(condition, "condition")
+        self.condition = condition
+        self.render_mode = render_mode
+        self.render_worlds = int(render_worlds)
+        self._renderer = None
+        self._rng = np.random.default_rng(seed)
+        self._seed = seed
+        n = self.num_worlds * self.max_agents
+        super().__init__(n, observation_space_for(self.sim), spaces.Discrete(int(self.sim.config.num_actions)))
+        self._obs_dim = int(self.observation_space.shape[0])
+        self._actions: np.ndarray | None = None
+        self._active = np.zeros(n, bool)
+        self._flat_index = np.arange(n)
+
+    # ------------------------------------------------------------------ internals
+    def _reset_worlds(self, worlds: np.ndarray) -> None:
+        """Reset ``worlds`` with a scenario and conditions drawn from this env's RNG."""
+        k = worlds.size
+        scenario_index = self._rng.integers(0, len(self.scenarios), size=k)
+        if self.fixed_condition is None:
+            cond = sample_conditions(self._rng, (k, self.max_agents))
+        else:
+            cond = np.broadcast_to(self.fixed_condition, (k, self.max_agents, NUM_CONDITION_FIELDS)).copy()
+        self.sim.reset(worlds=worlds, scenario_index=scenario_index, conditions=cond)
+
+    def _observe(self) -> np.ndarray:
+        """(num_envs, D) float32 copy of the observations, zero on inactive slots; updates the mask."""
+        self._active = _np(self.sim.policy_mask).reshape(-1).copy()
+        obs = np.array(_np(self.sim.obs).reshape(self.num_envs, self._obs_dim), dtype=np.float32, copy=True)
+        obs[~self._active] = 0.0
+        return obs
+
+    # ------------------------------------------------------------------ VecEnv API
+    def reset(self) -> np.ndarray:
+        if self._seeds[0] is not None:
+            self._seed = int(self._seeds[0])
+            self._rng = np.random.default_rng(self._seed)
+        self._reset_worlds(np.arange(self.num_worlds))
+        self._reset_seeds()
+        self._reset_options()
+        obs = self._observe()
+        self.reset_infos = [{"active": bool(a)} for a in self._active]
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        a = np.asarray(actions)
+        if a.size != self.num_envs:
+            raise ValueError(f"actions: expected {self.num_envs} actions (one per env index), got shape {a.shape}")
+        a = a.reshape(self.num_worlds, self.max_agents)
+        if not np.issubdtype(a.dtype, np.integer):
+            if not np.all(np.isfinite(a)) or not np.all(a == np.round(a)):
+                raise ValueError("actions: must be integers (Discrete action space)")
+            a = a.astype(np.int64)
+        n = int(self.action_space.n)
+        # inactive slots' actions are ignored by the simulator; clamp them so a policy that
+        # emits anything there is harmless, but reject out-of-range actions on active slots
+        active = self._active.reshape(self.num_worlds, self.max_agents)
+        bad = active & ((a < 0) | (a >= n))
+        if np.any(bad):
+            i = int(np.flatnonzero(bad.reshape(-1))[0])
+            raise ValueError(f"actions[{i}] = {a.reshape(-1)[i]} outside the action space; accepted: 0..{n - 1}")
+        self._actions = np.where(active, a, 0).astype(np.int64)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        if self._actions is None:
+            raise RuntimeError("step_wait called without step_async")
+        was_active = self._active
+        self.sim.step(self._actions)
+        self._actions = None
+        n = self.num_envs
+        reward = np.array(_np(self.sim.reward).reshape(n), dtype=np.float32, copy=True)
+        agent_done = was_active & _np(self.sim.done).reshape(n)
+        reward[~was_active] = 0.0
+        world_done = _np(self.sim.world_done).copy()
+        # a world that resets ends every episode still running in it (the simulator marks
+        # them timed out; this also covers a world ended for another reason)
+        cut = was_active & ~agent_done & np.repeat(world_done, self.max_agents)
+        ended = agent_done | cut
+        done_idx = np.flatnonzero(ended)
+        terminal_obs = truncated = outcome = None
+        if done_idx.size:
+            terminal_obs = np.array(_np(self.sim.obs).reshape(n, self._obs_dim)[done_idx], dtype=np.float32)
+            truncated = _np(self.sim.truncated).reshape(n)[done_idx] | cut[done_idx]
+            outcome = np.where(cut[done_idx], 4, _np(self.sim.outcome).reshape(n)[done_idx])
+        if np.any(world_done):
+            self._reset_worlds(np.flatnonzero(world_done))
+        obs = self._observe()
+        # infos: one fresh dict per index (wrappers mutate them); extra keys only where done
+        infos: list[dict[str, Any]] = [{"active": a} for a in self._active.tolist()]
+        if done_idx.size:
+            names = [OUTCOME_NAMES[o] if 0 <= o < len(OUTCOME_NAMES) else str(o) for o in outcome.tolist()]
+            for k, i in enumerate(done_idx.tolist()):
+                info = infos[i]
+                info["terminal_observation"] = terminal_obs[k]
+                info["TimeLimit.truncated"] = bool(truncated[k])
+                info["is_success"] = names[k] == "goal"
+                info["outcome"] = names[k]
+        return obs, reward, ended, infos
+
+    def active_mask(self) -> np.ndarray:
+        """(num_envs,) bool copy: which indices of the last observation hold a live POLICY agent."""
+        return self._active.copy()
+
+    def close(self) -> None:
+        self._renderer = None
+
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
+        """Seed the next ``reset()`` (scenario and condition draws); SB3 semantics."""
+        if seed is None:
+            seed = int(np.random.default_rng().integers(0, 2**31 - 1))
+        self._seeds = [seed + idx for idx in range(self.num_envs)]
+        return self._seeds
+
+    def _indices(self, indices: VecEnvIndices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        if isinstance(indices, (int, np.integer)):
+            return [int(indices)]
+        return list(indices)
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        value = getattr(self, attr_name)
+        return [value for _ in self._indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
+                   **method_kwargs: Any) -> list[Any]:
+        """Call ``method_name`` once on this env (all indices share it); the result is
+        repeated for each requested index."""
+        result = getattr(self, method_name)(*method_args, **method_kwargs)
+        return [result for _ in self._indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type[gymnasium.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._indices(indices)]
+
+    # ------------------------------------------------------------------ rendering
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        """One top-down frame per world (first ``render_worlds`` worlds), scene camera."""
+        if self.render_mode != "rgb_array":
+            return [None for _ in range(self.num_worlds)]
+        if self._renderer is None:
+            from cpsim.render import TopDownRenderer
+
+            self._renderer = TopDownRenderer(width=320, height=320, camera="scene")
+        return [self._renderer.render_sim(self.sim, w) for w in range(min(self.num_worlds, self.render_worlds))]
+
+    def world_frames(self, worlds: Iterable[int] | None = None, **renderer_kwargs: Any) -> list[np.ndarray]:
+        """Frames of the given worlds (default all) regardless of ``render_mode``."""
+        from cpsim.render import TopDownRenderer
+
+        r = TopDownRenderer(**{"camera": "scene", **renderer_kwargs})
+        worlds = range(self.num_worlds) if worlds is None else worlds
+        return [r.render_sim(self.sim, int(w)) for w in worlds]
+
+
+__all__ = ["SelfPlayVecEnv", "OUTCOME_NAMES", "resolve_scenarios", "make_simulator", "observation_space_for"]
