@@ -660,3 +660,63 @@ def convert_dir(
         report.written.append(str(target))
     report._warn_if_skipped(f"convert_dir({str(src_dir)!r})")
     return report
+
+
+# ---------------------------------------------------------------------------- command line
+def _bench(folder: Path, repeat: int) -> list[dict[str, Any]]:
+    """Best-of-``repeat`` load times (ms) of each JSON in ``folder`` and of its caches."""
+    import time
+
+    def best(fn: Callable[[], Any]) -> float:
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - start)
+        return 1e3 * min(times)
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for stem, json_path in sorted(_files(_folder(folder, "folder"), JSON_SUFFIX).items()):
+            scenario = load_json(json_path)
+            packed = save_cache(scenario, Path(tmp) / f"{stem}.npz", compress=True)
+            raw = save_cache(scenario, Path(tmp) / f"{stem}_raw.npz", compress=False)
+            rows.append({
+                "file": json_path.name,
+                "json_ms": best(lambda: load_json(json_path)),
+                "npz_ms": best(lambda: load_cache(packed)),
+                "npz_raw_ms": best(lambda: load_cache(raw)),
+                "json_kb": json_path.stat().st_size / 1024,
+                "npz_kb": packed.stat().st_size / 1024,
+                "npz_raw_kb": raw.stat().st_size / 1024,
+            })
+    return rows
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m cpsim.scenario.womd convert SRC DST`` | ``bench DIR [--repeat K]``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m cpsim.scenario.womd", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    conv = sub.add_parser("convert", help="convert a folder of WOMD JSON into .npz caches")
+    conv.add_argument("src")
+    conv.add_argument("dst")
+    conv.add_argument("--overwrite", action="store_true")
+    bench = sub.add_parser("bench", help="time JSON vs cache loading for each JSON in a folder")
+    bench.add_argument("folder")
+    bench.add_argument("--repeat", type=int, default=7)
+    args = parser.parse_args(argv)
+    if args.command == "convert":
+        report = convert_dir(args.src, args.dst, overwrite=args.overwrite)
+        print(report.summary())
+        return 0 if report.ok else 1
+    print(f"{'file':<36} {'json ms':>8} {'npz ms':>7} {'raw ms':>7} {'json KB':>8} {'npz KB':>7} {'raw KB':>7} {'speed-up':>8}")
+    for row in _bench(Path(args.folder), max(1, args.repeat)):
+        print(f"{row['file']:<36} {row['json_ms']:8.2f} {row['npz_ms']:7.2f} {row['npz_raw_ms']:7.2f} "
+              f"{row['json_kb']:8.0f} {row['npz_kb']:7.0f} {row['npz_raw_kb']:7.0f} {row['json_ms'] / row['npz_ms']:7.1f}x")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover - command-line entry
+    raise SystemExit(main())

@@ -519,3 +519,13 @@ def test_real_files_round_trip_through_convert_dir(tmp_path: Path) -> None:
     cached, rep = load_dir(WOMD_DIR, cache_dir=tmp_path)
     assert rep.written == [] and all(p.endswith(".npz") for p in rep.loaded)
     assert cached == [load(FILE_4), load(FILE_407)]
+
+
+def test_command_line_convert(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder, expected = _folder(tmp_path)
+    with pytest.warns(ScenarioLoadWarning):
+        code = womd.main(["convert", str(folder), str(tmp_path / "out")])
+    assert code == 1  # c.json was skipped
+    out = capsys.readouterr().out
+    assert "1 skipped" in out and "c.json" in out
+    assert load(tmp_path / "out" / "b.npz") == expected["b"]
