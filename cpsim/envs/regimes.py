@@ -139,6 +139,11 @@ class TrafficDriver:
             self._state = None
             self.mix_choice = np.full((w, a), -1, np.int8)
 
+    def release(self, worlds: np.ndarray | Sequence[int] | None = None) -> None:
+        """Stop driving the co-players of ``worlds`` (default all) until the next assign."""
+        if self._coplayer is not None:
+            self._coplayer[slice(None) if worlds is None else np.asarray(worlds, np.int64)] = False
+
     def coplayer_mask(self, sim: Any, worlds: np.ndarray | None = None) -> np.ndarray:
         """(len(worlds), A) bool: slots of controllable agents other than the ego slot."""
         self._bind(sim)
@@ -161,6 +166,12 @@ class TrafficDriver:
         self._bind(sim)
         worlds = np.arange(sim.num_worlds) if worlds is None else np.asarray(worlds, np.int64).reshape(-1)
         co = self.coplayer_mask(sim, worlds)
+        # several drivers may share one simulator (one per regime, each owning some worlds):
+        # a world reset since its last step belongs to whichever driver assigns it now, so
+        # drop freshly reset worlds this driver is not given
+        fresh = _to_numpy(sim.step_count) == 0
+        fresh[worlds] = False
+        self._coplayer[fresh] = False
         self._coplayer[worlds] = co
         ctrl = _to_numpy(sim.controllers)[worlds].astype(np.int32)
         cond = (_to_numpy(sim.conditions)[worlds] if conditions is None
