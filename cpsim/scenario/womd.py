@@ -580,18 +580,20 @@ def load_dir(
     for stem in sorted(set(jsons) | set(npzs)):
         json_path = jsons.get(stem)
         scenario, used = None, None
-        candidates = ([cache / f"{stem}{CACHE_SUFFIX}"] if cache is not None and json_path is not None else [])
-        if stem in npzs and npzs[stem] not in candidates:
+        # The cache_dir copy of a JSON is "managed": rebuilt silently when stale or unreadable.
+        managed_path = cache / f"{stem}{CACHE_SUFFIX}" if cache is not None and json_path is not None else None
+        candidates = [managed_path] if managed_path is not None else []
+        if stem in npzs and not (managed_path is not None and npzs[stem].resolve() == managed_path.resolve()):
             candidates.append(npzs[stem])
         for cand in candidates:
-            managed = cache is not None and cand.parent == cache and cand != npzs.get(stem)
+            managed = cand is managed_path
             if not cand.is_file():
                 continue
             try:
                 sc, origin = _read_cache(cand)
             except ScenarioError as exc:
                 if not managed:
-                    report.skipped.append((str(cand), exc.reason if json_path is None else
+                    report.skipped.append((str(cand), str(exc) if json_path is None else
                                            f"unreadable cache, loaded {json_path.name} instead: {exc.reason}"))
                 continue
             if json_path is not None and not _fresh(origin, json_path):
@@ -606,10 +608,12 @@ def load_dir(
             except ScenarioError as exc:
                 report.skipped.append((str(json_path), str(exc)))
                 continue
-            if cache is not None:
-                target = cache / f"{stem}{CACHE_SUFFIX}"
-                save_cache(scenario, target, origin=json_path)
-                report.written.append(str(target))
+            if managed_path is not None:
+                try:
+                    save_cache(scenario, managed_path, origin=json_path)
+                    report.written.append(str(managed_path))
+                except OSError as exc:  # the scenario is fine; only the cache could not be written
+                    report.skipped.append((str(managed_path), f"could not write cache: {exc}"))
         if scenario is None:
             continue
         if scenario.id in seen_ids:

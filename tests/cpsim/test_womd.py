@@ -529,3 +529,17 @@ def test_command_line_convert(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     out = capsys.readouterr().out
     assert "1 skipped" in out and "c.json" in out
     assert load(tmp_path / "out" / "b.npz") == expected["b"]
+
+
+def test_load_dir_with_cache_dir_equal_to_the_folder(tmp_path: Path) -> None:
+    folder, expected = _folder(tmp_path)
+    (folder / "c.json").unlink()
+    (folder / "orphan.npz").write_bytes(b"not a zip")  # a bare, unreadable cache is reported
+    with pytest.warns(ScenarioLoadWarning, match="orphan.npz"):
+        first, rep1 = load_dir(folder, cache_dir=folder)
+    assert [Path(p).name for p in rep1.written] == ["a.npz", "b.npz"]
+    assert [Path(p).name for p, _ in rep1.skipped] == ["orphan.npz"]
+    (folder / "orphan.npz").unlink()
+    second, rep2 = load_dir(folder, cache_dir=folder)
+    assert rep2.ok and rep2.written == [] and second == first == [expected["a"], expected["b"]]
+    assert [Path(p).name for p in rep2.loaded] == ["a.npz", "b.npz"]
