@@ -37,6 +37,11 @@ _LAZY = {
     "interactivity_score": "cpsim.scenario.splits",
     "interactive_split": "cpsim.scenario.splits",
     "random_split": "cpsim.scenario.splits",
+    "interactivity_terms": "cpsim.scenario.splits",
+    "interactivity_report": "cpsim.scenario.splits",
+    "load_json": "cpsim.scenario.womd",
+    "load_cache": "cpsim.scenario.womd",
+    "save_cache": "cpsim.scenario.womd",
 }
 
 
