@@ -1,0 +1,148 @@
+"""Command line: ``python -m cpalgo.evaluate``.
+
+Example::
+
+    python -m cpalgo.evaluate --policy anchor=zoo/anchor.zip --policy counterplay=runs/cp.zip \\
+        --traffic-policy zoo/anchor.zip --split both --n 50 --deploy normal --out results/eval
+
+``--policy`` takes ``PATH`` or ``LABEL=PATH`` (repeat it; the same label on several
+checkpoints aggregates them as seeds: mean and std). ``PATH`` may also be a built-in
+controller: ``expert`` (log replay) or ``idm``. Everything is validated before the first
+simulator step; on a bad input the command exits with status 2 and a message, and no
+result folder is written. The result folder is written atomically at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+
+def _parse_policy(spec: str) -> tuple[str | None, str]:
+    if "=" in spec:
+        label, path = spec.split("=", 1)
+        if not label:
+            raise ValueError(f"--policy {spec!r}: empty label before '='")
+        return label, path
+    return None, spec
+
+
+def _parse_regimes(values: Sequence[str]) -> list[str]:
+    from cpalgo.evaluate.runner import REGIMES, resolve_regime
+
+    names = [v for item in values for v in item.split(",") if v]
+    if not names or names == ["all"]:
+        return list(REGIMES)
+    return [resolve_regime(n) for n in names]
+
+
+def _parse_deploy(spec: str) -> str | tuple[float, ...]:
+    from cpsim.conditions import resolve_condition
+
+    if "," in spec:
+        try:
+            vec = tuple(float(x) for x in spec.split(","))
+        except ValueError:
+            raise ValueError(f"--deploy: {spec!r} is neither a profile name nor 10 comma-separated numbers") from None
+        resolve_condition(np.asarray(vec, np.float32), "--deploy")
+        return vec
+    resolve_condition(spec, "--deploy")
+    return spec
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m cpalgo.evaluate",
+                                description="BehaviorBench-style evaluation over traffic regimes.",
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p.add_argument("--policy", action="append", required=True, metavar="[LABEL=]PATH",
+                   help="ego policy checkpoint (.zip SB3 / CounterPlay, .pt BC) or 'expert' / 'idm'; repeatable")
+    p.add_argument("--regimes", nargs="+", default=["all"],
+                   help="traffic regimes (space or comma separated; default all eight: "
+                        "idm selfplay bc replay aggressive normal cautious mix)")
+    p.add_argument("--split", default="both", help="interactive, random or both")
+    p.add_argument("--n", type=int, default=50, help="tasks per split")
+    p.add_argument("--pool", default="procedural", help="'procedural' (eval_pool) or a folder of WOMD JSON/.npz")
+    p.add_argument("--pool-size", type=int, default=None, help="procedural pool size (default 4 n)")
+    p.add_argument("--deploy", default="normal",
+                   help="ego condition: profile (cautious, cautious-normal, normal, normal-aggressive/halfway, "
+                        "aggressive) or 10 comma-separated raw values")
+    p.add_argument("--traffic-policy", default=None,
+                   help="co-player checkpoint for selfplay / aggressive / normal / cautious / mix")
+    p.add_argument("--bc-policy", default=None, help="BC traffic model for 'bc' (default zoo/bc_traffic.pt)")
+    p.add_argument("--reference", default=None, help="label of the outcome analysis' reference (default first)")
+    p.add_argument("--out", required=True, help="results folder (replaced atomically)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-worlds", type=int, default=256, help="task-regimes simulated at once")
+    p.add_argument("--max-agents", type=int, default=None)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--record", type=int, default=3,
+                   help="record the first K tasks of each split and regime for the scene figure")
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def run(argv: Sequence[str] | None = None) -> dict:
+    """Parse, validate, evaluate and write; raises ``ValueError`` on bad input."""
+    from cpalgo.evaluate import runner as R
+    from cpalgo.evaluate import tables as TB
+
+    args = build_parser().parse_args(argv)
+    # ---- validate everything cheap first (no simulator, no file written)
+    regimes = _parse_regimes(args.regimes)
+    R.resolve_split(args.split)
+    deploy = _parse_deploy(args.deploy)
+    if args.n < 1:
+        raise ValueError(f"--n: must be >= 1, got {args.n}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out: {out} exists and is not a folder")
+    specs = [_parse_policy(s) for s in args.policy]
+    egos = [R.as_ego_policy(path, label) for label, path in specs]
+    labels = [e.label for e in egos]
+    if args.reference is not None and args.reference not in labels:
+        raise ValueError(f"--reference: {args.reference!r} is not one of the policy labels {labels}")
+    tasks = R.make_tasks(args.pool, args.split, args.n, seed=args.seed, pool_size=args.pool_size)
+    cfg = R.EvalConfig(deploy_condition=deploy, max_worlds=args.max_worlds, max_agents=args.max_agents,
+                       seed=args.seed, device=args.device, progress=not args.no_progress)
+    ev = R.Evaluator(tasks, regimes, traffic_policy=args.traffic_policy, bc_policy=args.bc_policy, config=cfg)
+    for e in egos:  # observation layout of every checkpoint, before any run
+        if e.controller == R._POLICY:
+            R.check_obs_size(e, ev.obs_size, f"--policy {e.checkpoint or e.label!r}")
+    if args.record > 0:
+        rows = np.flatnonzero(ev.items["task"] < args.record)
+        ev.config = dataclasses.replace(ev.config, record=tuple(int(r) for r in rows))
+    # ---- evaluate and write
+    results = [ev.run(e) for e in egos]
+    extra = {
+        "command": "python -m cpalgo.evaluate " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "pool": str(args.pool), "split": args.split, "n": args.n, "seed": args.seed,
+        "deploy": deploy if isinstance(deploy, str) else list(deploy), "regimes": regimes,
+        "traffic_policy": args.traffic_policy, "bc_policy": args.bc_policy,
+        "policies": [{"label": r.label, "checkpoint": r.checkpoint, **r.meta} for r in results],
+    }
+    scenarios = {t.scenario_id: t.scenario for t in tasks}
+    summary = TB.write_results(out, results, reference=args.reference, plots=not args.no_plots,
+                               scenarios=scenarios, extra=extra)
+    return summary
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        summary = run(argv)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    from cpalgo.evaluate import tables as TB
+
+    print(TB.markdown_tables(summary, TB.TABLE_METRICS[:2]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
