@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import json
 import os
-import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -150,14 +149,12 @@ def test_round_trip_json_cache_exact(tmp_path: Path) -> None:
     # A field that differs breaks equality (the round-trip assertion is not vacuous).
     moved = np.array(s.goal_xy)
     moved[0, 0] += 1e-3
-    import dataclasses
     assert dataclasses.replace(s, goal_xy=moved) != back
     assert not [p for p in tmp_path.iterdir() if p.suffix == ".tmp"]
 
 
 def test_cache_accepts_procedural_style_scenarios(tmp_path: Path) -> None:
     s = load(write_doc(tmp_path / "x.json", make_doc()))
-    import dataclasses
     other = dataclasses.replace(s, family="four_way", source="procedural:four_way:3", id="p3")
     back = load_cache(save_cache(other, tmp_path / "p.npz"))
     assert back == other and back.source == "procedural:four_way:3"
