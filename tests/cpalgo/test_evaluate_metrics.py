@@ -232,3 +232,21 @@ def test_summarize_rates():
     s = M.summarize(per)
     assert s == {"n": 4, "score": 35.0, "completion": 0.5, "at_fault_collision": 0.25,
                  "offroad": 0.25, "co_player_harm": 0.5}
+
+
+def test_collision_rules_agree_with_simulator_reference():
+    """The simulator's NumPy reference of its kernel rule gives the same case as ours."""
+    G = pytest.importorskip("cpsim.kernels.geometry")
+    rng = np.random.default_rng(7)
+    n = 300
+    ego = np.c_[rng.normal(0, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
+    oth = np.c_[rng.normal(0, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
+    ve, vo = rng.choice([0.0, 0.04, 4.0], n), rng.choice([0.0, -3.0, 4.0], n)
+    se = rng.uniform([3.5, 1.6], [5.5, 2.2], (n, 2))
+    so = rng.uniform([3.5, 1.6], [5.5, 2.2], (n, 2))
+    ours = M.collision_type(ego[:, :2], ego[:, 2], ve, se, oth[:, :2], oth[:, 2], vo, so)
+    theirs = [G.classify_collision(ego[i, :2], ego[i, 2], ve[i], se[i], oth[i, :2], oth[i, 2], vo[i], so[i])
+              for i in range(n)]
+    assert ours.tolist() == theirs
+    spans = rng.random(n) < 0.5
+    assert M.at_fault(ours, spans).tolist() == [G.classify_fault(k, s) for k, s in zip(theirs, spans)]
