@@ -1,0 +1,413 @@
+"""Rule-based driver that produces the logged trajectories of procedural scenarios.
+
+Every agent follows a *route*: a sequence of lane centrelines (indices into a lane
+list) concatenated into one polyline. Its state is the arc length ``s`` of its box
+centre along that polyline and its speed ``v``; pose = point and tangent of the route at
+``s``; velocity = ``v`` times the tangent. All agents step together, vectorised with
+NumPy over agents and agent pairs (one Python iteration per time step, none per agent).
+
+Longitudinal control is the Intelligent Driver Model (IDM) against the most
+constraining of:
+
+* the leader on the same path: any agent whose current lane is also on my route and
+  lies ahead of me (lane offsets make this one gather per step);
+* virtual leaders at merges: an agent on another lane that joins my route at the same
+  point and is closer to that point than I am;
+* stop lines in front of conflict zones while I yield (gap acceptance, below);
+* a comfortable speed envelope for curves (lateral acceleration limit) that also brings
+  me to a stop at the end of my route (agents stay on the map, valid to the last step).
+
+Conflict zones come from pairs of lanes whose centrelines pass closer than
+:data:`CONFLICT_DISTANCE` (crossing, merging or diverging lanes). At a crossing I stop
+before the zone while another agent occupies it, or while an agent that has priority
+(higher lane priority level, else first come: who first got near the zone, else who
+arrives sooner, else the lower index) reaches the zone before I could clear it plus my
+accepted time gap. Priorities form a strict order per pair and waits are released by
+the first-come rule, which avoids deadlocks in practice; the generator still checks the
+logs for collisions and drops offending traffic.
+
+Public helpers :func:`poses_along` and :func:`follow_speed_profile` turn an arc-length
+or speed profile on any polyline into poses; the simulator's IDM and replay code and
+the tests may reuse them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from cpsim.scenario.datatypes import DT, NUM_STEPS
+from cpsim.scenario.geometry_utils import (
+    BatchedPolylines,
+    cumulative_length,
+    point_segment_distance,
+    vertex_headings,
+)
+
+__all__ = [
+    "CONFLICT_DISTANCE", "CROSS", "MERGE", "DIVERGE", "LaneConflicts", "lane_conflicts",
+    "AgentPlan", "DriveResult", "drive", "poses_along", "follow_speed_profile",
+]
+
+#: Two lanes interact where their centrelines come closer than this (m): about two
+#: half car widths plus a margin. Parallel lanes (>= 3.2 m apart) never do.
+CONFLICT_DISTANCE = 2.6
+CROSS, MERGE, DIVERGE = 1, 2, 3
+
+MIN_GAP = 2.0             # IDM jam distance s0, m
+EMERGENCY_DECEL = 9.0     # hardest braking, m/s^2
+STOP_LINE_MARGIN = 1.0    # my front stops this far before a conflict zone, m
+COMMIT_DECEL = 3.5        # past the point where stopping needs more than this, I go on, m/s^2
+LATERAL_ACCEL = 2.5       # comfortable lateral acceleration in curves, m/s^2
+ENVELOPE_DECEL = 1.5      # deceleration used to anticipate curves and route ends, m/s^2
+END_MARGIN = 1.0          # agents stop with their front this far before the end of their route, m
+_FAR = 1.0e9
+
+
+# --------------------------------------------------------------------------- reusable pieces
+def poses_along(polyline: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``(T, 2)`` and headings ``(T,)`` (rad, wrapped to (-pi, pi]) at arc lengths
+    ``s (T,)`` (m, clipped to the polyline) along ``polyline (n, 2)``."""
+    route = BatchedPolylines([np.asarray(polyline, dtype=np.float64)])
+    s = np.asarray(s, dtype=np.float64)
+    xy, heading = route.at(s[None, :])
+    return xy[0], _wrap(heading[0])
+
+
+def follow_speed_profile(polyline: np.ndarray, speeds: np.ndarray, dt: float = DT,
+                         s0: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drive along ``polyline`` with the speed profile ``speeds (T,)`` (m/s, one per step).
+
+    Step ``t`` is at arc length ``s0 + dt * sum(speeds[:t])``. Returns positions ``(T, 2)``,
+    headings ``(T,)`` and world-frame velocities ``(T, 2)``; a profile that runs past the
+    end of the polyline stops there (speed set to 0).
+    """
+    speeds = np.asarray(speeds, dtype=np.float64)
+    s = s0 + dt * np.concatenate([[0.0], np.cumsum(speeds[:-1])])
+    length = cumulative_length(np.asarray(polyline, dtype=np.float64))[-1]
+    xy, heading = poses_along(polyline, s)
+    v = np.where(s >= length, 0.0, speeds)
+    return xy, heading, v[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# --------------------------------------------------------------------------- lane conflicts
+@dataclasses.dataclass(frozen=True)
+class LaneConflicts:
+    """Directed conflict zones between lanes, one row per (lane a, lane b) ordered pair.
+
+    ``a, b (C,)`` lane indices; ``kind (C,)`` CROSS / MERGE / DIVERGE; ``enter_a, exit_a``
+    the arc-length interval (m) on lane ``a`` where it is within CONFLICT_DISTANCE of lane
+    ``b``; ``enter_b, exit_b`` the same on ``b``.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    kind: np.ndarray
+    enter_a: np.ndarray
+    exit_a: np.ndarray
+    enter_b: np.ndarray
+    exit_b: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.a.shape[0])
+
+
+def lane_conflicts(lanes: list[np.ndarray], lane_mask: np.ndarray | None = None,
+                   distance: float = CONFLICT_DISTANCE) -> LaneConflicts:
+    """Find the conflict zones between every pair of (masked) lanes.
+
+    Consecutive lanes (one ends where the other starts) do not conflict: the agents on
+    them are handled by car following. Lanes that share both their start and their end
+    (alternative paths such as a bypass around a blocked lane) are skipped as well.
+    """
+    num = len(lanes)
+    mask = np.ones(num, bool) if lane_mask is None else np.asarray(lane_mask, bool)
+    boxes = np.array([[p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()] for p in lanes])
+    cum = [cumulative_length(p) for p in lanes]
+    lo, hi = boxes[:, None, :2], boxes[None, :, 2:]
+    near = np.all(boxes[:, None, :2] - distance <= boxes[None, :, 2:], axis=-1)
+    near &= np.all(boxes[None, :, :2] - distance <= boxes[:, None, 2:], axis=-1)
+    del lo, hi
+    rows: list[tuple] = []
+    ends = np.array([[p[0, 0], p[0, 1], p[-1, 0], p[-1, 1]] for p in lanes])
+    for a, b in zip(*np.nonzero(np.triu(near & mask[:, None] & mask[None, :], k=1))):
+        pa, pb = lanes[a], lanes[b]
+        same_start = np.linalg.norm(ends[a, :2] - ends[b, :2]) < 0.1
+        same_end = np.linalg.norm(ends[a, 2:] - ends[b, 2:]) < 0.1
+        consecutive = (np.linalg.norm(ends[a, 2:] - ends[b, :2]) < 0.1
+                       or np.linalg.norm(ends[b, 2:] - ends[a, :2]) < 0.1)
+        if consecutive or (same_start and same_end):
+            continue
+        close_a = point_segment_distance(pa, pb[:-1], pb[1:]).min(axis=1) < distance
+        if not close_a.any():
+            continue
+        close_b = point_segment_distance(pb, pa[:-1], pa[1:]).min(axis=1) < distance
+        if not close_b.any():
+            continue
+        ia, ib = np.nonzero(close_a)[0], np.nonzero(close_b)[0]
+        # widen by one vertex on each side so the zone covers the true crossing extent
+        ea, xa = cum[a][max(ia[0] - 1, 0)], cum[a][min(ia[-1] + 1, len(pa) - 1)]
+        eb, xb = cum[b][max(ib[0] - 1, 0)], cum[b][min(ib[-1] + 1, len(pb) - 1)]
+        kind = MERGE if same_end else DIVERGE if same_start else CROSS
+        rows.append((a, b, kind, ea, xa, eb, xb))
+        rows.append((b, a, kind, eb, xb, ea, xa))
+    if not rows:
+        z = np.zeros(0)
+        return LaneConflicts(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), z, z, z, z)
+    arr = np.array(rows, dtype=np.float64)
+    return LaneConflicts(arr[:, 0].astype(np.int64), arr[:, 1].astype(np.int64),
+                         arr[:, 2].astype(np.int64), arr[:, 3], arr[:, 4], arr[:, 5], arr[:, 6])
+
+
+# --------------------------------------------------------------------------- agents and driving
+@dataclasses.dataclass(frozen=True)
+class AgentPlan:
+    """What the driver needs per agent (N agents; arrays are (N,)).
+
+    routes: lane-index sequences (each a tuple of ints into the lane list).
+    start_s: arc length (m) of the box centre along the route when the agent appears.
+    start_speed: speed (m/s) when it appears.
+    start_step: first step at which it may appear (it waits if its entry is blocked).
+    static: parked agents: never move, speed 0, valid at every step.
+    length, width: box size (m).
+    desired_speed: IDM free-road speed (m/s). headway: IDM time headway (s).
+    accel: IDM maximum acceleration (m/s^2). decel: IDM comfortable deceleration (m/s^2).
+    gap: accepted time gap at conflict zones (s).
+    """
+
+    routes: tuple[tuple[int, ...], ...]
+    start_s: np.ndarray
+    start_speed: np.ndarray
+    start_step: np.ndarray
+    static: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    desired_speed: np.ndarray
+    headway: np.ndarray
+    accel: np.ndarray
+    decel: np.ndarray
+    gap: np.ndarray
+
+    @property
+    def num_agents(self) -> int:
+        return len(self.routes)
+
+    def subset(self, keep: np.ndarray) -> AgentPlan:
+        """The plan restricted to the agents where ``keep`` is True (or listed indices)."""
+        idx = np.nonzero(keep)[0] if np.asarray(keep).dtype == bool else np.asarray(keep)
+        values = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            values[f.name] = tuple(v[i] for i in idx) if f.name == "routes" else np.asarray(v)[idx]
+        return AgentPlan(**values)
+
+
+@dataclasses.dataclass(frozen=True)
+class DriveResult:
+    """Logged trajectories (N agents, T steps): ``s, speed (N, T)`` route arc length (m) and
+    speed (m/s); ``valid (N, T)``; ``xy (N, T, 2)``; ``heading (N, T)`` (rad, wrapped);
+    ``velocity (N, T, 2)`` (m/s); ``routes``: the route polylines; ``entered (N,)`` the step
+    each agent appeared (-1: never)."""
+
+    s: np.ndarray
+    speed: np.ndarray
+    valid: np.ndarray
+    xy: np.ndarray
+    heading: np.ndarray
+    velocity: np.ndarray
+    routes: BatchedPolylines
+    entered: np.ndarray
+
+
+def route_polyline(lanes: list[np.ndarray], route: tuple[int, ...]) -> np.ndarray:
+    """The lanes of ``route`` concatenated (shared joint vertices kept once), ``(n, 2)``."""
+    parts = [lanes[route[0]]] + [lanes[r][1:] for r in route[1:]]
+    return np.concatenate(parts, axis=0)
+
+
+def _speed_envelope(routes: BatchedPolylines, desired: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """(N, K) highest speed at each route vertex from which the agent can still slow down
+    (at ENVELOPE_DECEL) to the comfortable curve speed of every later vertex and to a stop
+    at the end of its route. ``lengths (N,)`` box lengths, m."""
+    ds = np.maximum(np.diff(routes.s, axis=1), 1e-6)
+    curvature = np.abs(np.diff(routes.heading, axis=1)) / ds
+    curvature = np.concatenate([curvature[:, :1], np.maximum(curvature[:, 1:], curvature[:, :-1]),
+                                curvature[:, -1:]], axis=1)
+    limit2 = np.minimum(LATERAL_ACCEL / np.maximum(curvature, 1e-9), desired[:, None] ** 2)
+    reach = limit2 + 2.0 * ENVELOPE_DECEL * routes.s
+    envelope2 = np.minimum.accumulate(reach[:, ::-1], axis=1)[:, ::-1] - 2.0 * ENVELOPE_DECEL * routes.s
+    # agents stop at the end of their route (front END_MARGIN before it) instead of leaving the map
+    stop_at = (routes.length - 0.5 * lengths - END_MARGIN)[:, None]
+    envelope2 = np.minimum(envelope2, 2.0 * ENVELOPE_DECEL * (stop_at - routes.s))
+    return np.sqrt(np.maximum(envelope2, 0.0))
+
+
+def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConflicts,
+          plan: AgentPlan, num_steps: int = NUM_STEPS, dt: float = DT) -> DriveResult:
+    """Simulate all agents of ``plan`` for ``num_steps`` steps and return their logs.
+
+    ``lane_levels (L,)``: priority level of each lane at conflict zones (higher has the
+    right of way; equal levels use first come, first served).
+    """
+    n, num_lanes = plan.num_agents, len(lanes)
+    polylines = [route_polyline(lanes, r) for r in plan.routes]
+    routes = BatchedPolylines(polylines)
+    lane_len = np.array([cumulative_length(p)[-1] for p in lanes])
+    width_r = max(len(r) for r in plan.routes)
+    route_lanes = np.full((n, width_r), -1, np.int64)
+    lane_start = np.full((n, width_r), np.inf)
+    offset = np.full((n, num_lanes), np.nan)           # arc length where lane l starts on route i
+    for i, r in enumerate(plan.routes):                # build time only (N <= 32)
+        starts = np.concatenate([[0.0], np.cumsum(lane_len[list(r)])[:-1]])
+        route_lanes[i, :len(r)] = r
+        lane_start[i, :len(r)] = starts
+        offset[i, list(r)] = starts
+    length = plan.length.astype(np.float64)
+    half = 0.5 * length
+    static = plan.static.astype(bool)
+    moving = ~static
+    envelope = _speed_envelope(routes, plan.desired_speed.astype(np.float64), length)
+
+    # ---- pairwise conflict zones on the routes (first zone along my route per pair)
+    zone_in = np.full((n, n), np.nan)     # my zone entry / exit on my route
+    zone_out = np.full((n, n), np.nan)
+    other_in = np.full((n, n), np.nan)    # the other's zone entry / exit on its route
+    other_out = np.full((n, n), np.nan)
+    kind = np.zeros((n, n), np.int64)
+    my_level = np.zeros((n, n))
+    other_level = np.zeros((n, n))
+    for c in range(conflicts.count):      # per lane pair, vectorised over agent pairs
+        a, b = conflicts.a[c], conflicts.b[c]
+        oa, ob = offset[:, a], offset[:, b]
+        # both lanes on one route means the pair is handled by following on that route
+        ok = ~np.isnan(oa)[:, None] & ~np.isnan(ob)[None, :]
+        ok &= np.isnan(offset[:, b])[:, None] & np.isnan(offset[:, a])[None, :]
+        ok &= moving[:, None] & moving[None, :]
+        cand = oa[:, None] + conflicts.enter_a[c]
+        better = ok & ~(cand >= zone_in)             # NaN-aware "first zone wins"
+        if not better.any():
+            continue
+        zone_in = np.where(better, cand, zone_in)
+        zone_out = np.where(better, oa[:, None] + conflicts.exit_a[c], zone_out)
+        other_in = np.where(better, ob[None, :] + conflicts.enter_b[c], other_in)
+        other_out = np.where(better, ob[None, :] + conflicts.exit_b[c], other_out)
+        kind = np.where(better, conflicts.kind[c], kind)
+        my_level = np.where(better, lane_levels[a], my_level)
+        other_level = np.where(better, lane_levels[b], other_level)
+    np.fill_diagonal(kind, 0)
+    has_zone = kind > 0
+    zone_in, zone_out = np.nan_to_num(zone_in, nan=_FAR), np.nan_to_num(zone_out, nan=_FAR)
+    other_in, other_out = np.nan_to_num(other_in, nan=_FAR), np.nan_to_num(other_out, nan=_FAR)
+    is_cross, is_merge, is_diverge = kind == CROSS, kind == MERGE, kind == DIVERGE
+    higher_level, same_level = other_level > my_level, other_level == my_level
+    lower_index = np.arange(n)[None, :] < np.arange(n)[:, None]     # j < i
+
+    # ---- state
+    s = plan.start_s.astype(np.float64).copy()
+    v = np.where(static, 0.0, plan.start_speed.astype(np.float64))
+    started = static | (plan.start_step <= 0)
+    entered = np.where(started, 0, -1)
+    claim = np.full((n, n), np.iinfo(np.int64).max)
+    v0 = plan.desired_speed.astype(np.float64)
+    a_max, b_comf = plan.accel.astype(np.float64), plan.decel.astype(np.float64)
+    headway, gap_time = plan.headway.astype(np.float64), plan.gap.astype(np.float64)
+    sqrt_ab = 2.0 * np.sqrt(a_max * b_comf)
+    spawn_xy, _ = routes.at(s)
+    route_end = routes.length
+
+    log_s = np.zeros((n, num_steps))
+    log_v = np.zeros((n, num_steps))
+    log_valid = np.zeros((n, num_steps), bool)
+    rows = np.arange(n)
+    for t in range(num_steps):
+        # -- late agents appear once their entry point is clear
+        pending = ~started & (plan.start_step <= t)
+        if pending.any():
+            xy_now, _ = routes.at(s)
+            need = half[:, None] + half[None, :] + MIN_GAP + np.maximum(v, v[:, None]) * 1.0
+            blocked = (np.linalg.norm(spawn_xy[:, None] - xy_now[None], axis=-1) < need) & started[None, :]
+            cand = pending & ~blocked.any(axis=1)
+            clash = (np.linalg.norm(spawn_xy[:, None] - spawn_xy[None], axis=-1) < need)
+            clash &= cand[None, :] & lower_index
+            cand &= ~clash.any(axis=1)
+            started = started | cand
+            entered = np.where(cand, t, entered)
+        log_s[:, t], log_v[:, t], log_valid[:, t] = s, v, started
+
+        active = started & moving
+        front, rear = s + half, s - half
+        pair_active = active[:, None] & started[None, :]
+        pair_active[rows, rows] = False
+
+        # -- leaders on my route: where is agent j in my route's arc length?
+        k = np.maximum((s[:, None] >= lane_start).sum(axis=1) - 1, 0)
+        cur_lane = route_lanes[rows, k]
+        local = s - lane_start[rows, k]
+        proj = offset[:, cur_lane] + local[None, :]
+        follow = pair_active & ~np.isnan(proj) & (np.nan_to_num(proj, nan=-_FAR) > s[:, None])
+        gap_follow = np.where(follow, proj - s[:, None] - half[:, None] - half[None, :], _FAR)
+
+        # -- conflict zones
+        zpair = has_zone & pair_active & active[None, :]
+        occ_other = (front[None, :] >= other_in) & (rear[None, :] <= other_out)
+        in_mine = (front[:, None] >= zone_in) & (rear[:, None] <= zone_out)
+        cleared_me = rear[:, None] > zone_out
+        cleared_other = rear[None, :] > other_out
+        dist_me = zone_in - front[:, None]
+        dist_other = other_in - front[None, :]
+        tta_other = np.where(occ_other, 0.0, np.maximum(dist_other, 0.0) / np.maximum(v[None, :], 2.0))
+        tta_me = np.where(in_mine, 0.0, np.maximum(dist_me, 0.0) / np.maximum(v[:, None], 2.0))
+        clear_dist = np.maximum(zone_out - rear[:, None], 0.0)
+        vv = v[:, None]
+        t_exit = (-vv + np.sqrt(vv * vv + 2.0 * a_max[:, None] * clear_dist)) / a_max[:, None]
+        near_me = zpair & ~cleared_me & ((dist_me < np.maximum(8.0, 4.0 * vv)) | in_mine)
+        claim = np.where(near_me, np.minimum(claim, t), claim)
+        claim_other = claim.T
+        other_first = (claim_other < claim) | ((claim_other == claim) & (
+            (tta_other < tta_me) | ((tta_other == tta_me) & lower_index)))
+        other_priority = higher_level | (same_level & other_first)
+        stop_gap = dist_me - STOP_LINE_MARGIN
+        committed = stop_gap < vv * vv / (2.0 * COMMIT_DECEL)
+        relevant = zpair & ~cleared_me & ~in_mine & ~cleared_other
+        yield_cross = relevant & is_cross & (occ_other | (
+            other_priority & ~committed & (tta_other < t_exit + gap_time[:, None])))
+        yield_diverge = relevant & is_diverge & occ_other
+        to_join_me = zone_out - s[:, None]
+        to_join_other = other_out - s[None, :]
+        before_join = (to_join_me > 0) & (to_join_other > 0) & zpair & is_merge
+        approaching = (dist_me < np.maximum(15.0, 3.0 * vv)) | in_mine
+        virtual = before_join & approaching & (to_join_other < to_join_me)
+        gap_virtual = np.where(virtual, to_join_me - to_join_other - half[:, None] - half[None, :], _FAR)
+        tj_me = to_join_me / np.maximum(vv, 2.0)
+        tj_other = to_join_other / np.maximum(v[None, :], 2.0)
+        yield_merge = (before_join & ~virtual & ~in_mine & other_priority & ~committed
+                       & (tj_other < tj_me + gap_time[:, None]))
+        must_stop = yield_cross | yield_diverge | yield_merge
+        gap_stop = np.where(must_stop, stop_gap, _FAR)
+
+        # -- IDM against every constraint; the most constraining one wins
+        gaps = np.concatenate([gap_follow, gap_virtual, gap_stop], axis=1)       # (N, 3N)
+        lead_v = np.concatenate([np.broadcast_to(v[None, :], (n, n)), np.broadcast_to(v[None, :], (n, n)),
+                                 np.zeros((n, n))], axis=1)
+        desired_gap = MIN_GAP + np.maximum(0.0, vv * headway[:, None] + vv * (vv - lead_v) / sqrt_ab[:, None])
+        interaction = (desired_gap / np.maximum(gaps, 1e-2)) ** 2
+        v_free = np.minimum(routes.interp(envelope, s), v0)
+        accel = a_max * (1.0 - (v / np.maximum(v_free, 0.1)) ** 4 - interaction.max(axis=1))
+        accel = np.where(gaps.min(axis=1) < 0.05, -EMERGENCY_DECEL, accel)
+        accel = np.clip(accel, -EMERGENCY_DECEL, a_max)
+        v_new = np.maximum(v + accel * dt, 0.0)
+        ds = 0.5 * (v + v_new) * dt
+        s = np.where(active, np.minimum(s + ds, route_end - half), s)
+        v = np.where(active, v_new, v)
+
+    xy, heading = routes.at(log_s)
+    heading = _wrap(heading)
+    velocity = log_v[..., None] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    return DriveResult(s=log_s, speed=log_v, valid=log_valid, xy=xy, heading=heading,
+                       velocity=velocity, routes=routes, entered=entered)
