@@ -13,6 +13,8 @@ from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_con
 
 OUTCOME_NAMES: tuple[str, ...] = ("running", "goal", "collision", "offroad", "timeout")
 CONDITION_MODES = ("train",)
+#: procedural scenarios generated when no scenarios are given (``num_scenarios`` overrides)
+DEFAULT_POOL_SIZE = 16
 
 
 def _np(x: Any) -> np.ndarray:
@@ -25,9 +27,9 @@ def _np(x: Any) -> np.ndarray:
 def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_dir: str | None = None,
                       num_scenarios: int | None = None, seed: int = 0) -> list:
     """Scenario list from exactly one source: a list, a procedural family, a WOMD folder,
-    or (none given) the procedural training pool.
+    or (none given) the procedural training pool (``train_pool(DEFAULT_POOL_SIZE, seed)``).
 
-    ``num_scenarios`` caps the count (procedural families: how many seeds to generate).
+    ``num_scenarios`` caps the count (procedural: how many scenarios to generate).
     """
     from cpsim import scenario as scen_mod
     from cpsim.scenario.datatypes import Scenario
@@ -50,14 +52,15 @@ def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_
         families = tuple(scen_mod.FAMILIES)
         if family not in families:
             raise ValueError(f"family: unknown procedural family {family!r}; accepted: {list(families)}")
-        n = 16 if num_scenarios is None else int(num_scenarios)
-        out = list(scen_mod.pool(n, seed, families=[family]))
+        n = DEFAULT_POOL_SIZE if num_scenarios is None else int(num_scenarios)
+        out = list(scen_mod.train_pool(n, seed, families=[family]))
     elif womd_dir is not None:
         out = list(scen_mod.load_dir(womd_dir))
         if not out:
             raise ValueError(f"womd_dir: no scenario files in {womd_dir!r}")
     else:
-        out = list(scen_mod.train_pool())
+        n = DEFAULT_POOL_SIZE if num_scenarios is None else int(num_scenarios)
+        out = list(scen_mod.train_pool(n, seed))
     if num_scenarios is not None:
         out = out[: int(num_scenarios)]
     return out
@@ -101,7 +104,7 @@ class SelfPlayVecEnv(VecEnv):
 
     Args:
         scenarios: list of :class:`~cpsim.scenario.Scenario`; None = the procedural
-            training pool (``cpsim.scenario.train_pool()``). ``family`` / ``womd_dir``
+            training pool (``cpsim.scenario.train_pool(16, seed)``). ``family`` / ``womd_dir``
             (keyword) pick a procedural family or a folder of WOMD files instead.
         num_worlds, max_agents: W and A.
         dynamics: "jerk" (Discrete(12)) or "classic" (Discrete(91)).
