@@ -61,6 +61,13 @@ def _register_envs() -> None:
             vector_entry_point="cpsim.envs.drive:DriveVectorEnv",
             max_episode_steps=None,
         )
+    # `python -m rl_zoo3.train --gym-packages cpsim`: default hyperparameters for cpsim/ ids
+    import sys
+
+    if "rl_zoo3.exp_manager" in sys.modules:
+        from cpsim.envs.zoo_support import install_if_zoo_loaded
+
+        install_if_zoo_loaded()
 
 
 _register_envs()

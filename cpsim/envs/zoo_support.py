@@ -1,0 +1,74 @@
+"""Default rl-zoo3 hyperparameters for ``cpsim/*`` environments.
+
+rl-zoo3 looks hyperparameters up by environment id in its own YAML files, which know
+nothing about ``cpsim/Drive-v0``, so ``python -m rl_zoo3.train --algo ppo --env
+cpsim/Drive-v0 --gym-packages cpsim`` would stop with "Hyperparameters not found".
+``import cpsim`` calls :func:`install_if_zoo_loaded`: when rl-zoo3's experiment manager
+is already imported (i.e. we are being loaded through ``--gym-packages``), it makes the
+manager read this package's YAML (``zoo_hyperparams/<algo>.yml``) for ``cpsim/`` ids
+whenever no ``--conf-file`` was given and the zoo's own file has no entry. An explicit
+``--conf-file`` always wins. Nothing is patched when rl-zoo3 is not loaded.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from typing import Any
+
+HYPERPARAMS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "zoo_hyperparams")
+ENV_PREFIX = "cpsim/"
+
+
+def hyperparams_file(algo: str) -> str | None:
+    """Path of this package's YAML for ``algo`` (rl-zoo3 name, e.g. "ppo"), or None."""
+    path = os.path.join(HYPERPARAMS_DIR, f"{algo}.yml")
+    return path if os.path.isfile(path) else None
+
+
+def install(exp_manager_cls: Any) -> None:
+    """Wrap ``ExperimentManager.read_hyperparameters`` (idempotent)."""
+    original = exp_manager_cls.read_hyperparameters
+    if getattr(original, "_cpsim_defaults", False):
+        return
+
+    @functools.wraps(original)
+    def read_hyperparameters(self: Any) -> Any:
+        gym_id = getattr(getattr(self, "env_name", None), "gym_id", "")
+        ours = hyperparams_file(self.algo) if str(gym_id).startswith(ENV_PREFIX) else None
+        if ours is not None and _is_zoo_default(self.config, self.algo) and not _zoo_has(self.config, gym_id):
+            self.config = ours
+        return original(self)
+
+    read_hyperparameters._cpsim_defaults = True  # type: ignore[attr-defined]
+    exp_manager_cls.read_hyperparameters = read_hyperparameters
+
+
+def _is_zoo_default(config: str, algo: str) -> bool:
+    import rl_zoo3
+
+    default = os.path.join(os.path.dirname(rl_zoo3.__file__), "hyperparams", f"{algo}.yml")
+    return os.path.abspath(str(config)) == os.path.abspath(default)
+
+
+def _zoo_has(config: str, gym_id: str) -> bool:
+    import yaml
+
+    try:
+        with open(config) as f:
+            return gym_id in (yaml.safe_load(f) or {})
+    except OSError:
+        return False
+
+
+def install_if_zoo_loaded() -> bool:
+    """Install the defaults when rl-zoo3's experiment manager is imported; returns whether it was."""
+    mod = sys.modules.get("rl_zoo3.exp_manager")
+    if mod is None or not hasattr(mod, "ExperimentManager"):
+        return False
+    install(mod.ExperimentManager)
+    return True
+
+
+__all__ = ["install", "install_if_zoo_loaded", "hyperparams_file", "HYPERPARAMS_DIR"]
