@@ -832,6 +832,38 @@ class CounterPlay(RecurrentPPO):
             failure_step=req.failure_step,
         )
 
+    def replay_root(self, world: int, root_step: int, main_draws: bool = True) -> BranchResult:
+        """Re-run a stored root of ``world``'s current episode as one factual branch.
+
+        With ``main_draws`` the branch samples every decision from the uniforms the main
+        rollout used (fresh draws once those run out), so it reproduces the recorded
+        actions and trajectory: the check that branches start from the true state.
+        Returns the :class:`BranchResult` (``actions`` (1, T, A), ``xy`` (1, T + 1, A, 2)).
+        """
+        if self._roots is None or self._runner is None:
+            raise ValueError("world: no roots recorded yet (counterfactual=True and a rollout are needed)")
+        roots = self._roots
+        steps, positions = roots.roots_of(int(world))
+        match = positions[steps == int(root_step)]
+        if match.size == 0:
+            raise ValueError(f"root_step: no root at decision {root_step} in world {world}'s current episode")
+        p = int(match[0])
+        draws = None
+        if main_draws:
+            trace = roots.uniforms[world, :, root_step:roots.episode_steps].T  # (steps, A)
+            recorded = ~np.isnan(trace).any(axis=1)
+            n = int(np.argmin(recorded)) if not recorded.all() else recorded.size
+            draws = trace[:n].copy()
+        job = BranchJob(
+            snapshot=roots.snapshots[int(roots.snapshot_id[world, p])],
+            snapshot_row=int(roots.snapshot_row[world, p]),
+            conditions=roots.conditions[world, p][None].copy(),
+            pi_state=(roots.pi_h[world, p], roots.pi_c[world, p]),
+            vf_state=(roots.vf_h[world, p], roots.vf_c[world, p]),
+            focal=0, root_step=int(root_step), deadline=roots.episode_steps, uniforms=draws, record=False,
+        )
+        return self._runner.run([job])[0]
+
     # ================================================================== logging
     def _log_generation(self, summary: dict[str, int]) -> None:
         if not self.counterfactual:

@@ -1,0 +1,66 @@
+"""RootStore: ring of roots, traces and search requests (no simulator needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch as th
+
+from cpalgo.counterplay.roots import RootStore
+
+
+def _store(**kw):
+    args = dict(num_worlds=3, max_agents=2, episode_steps=91, root_interval=5, window_end=60,
+                lstm_layers=1, lstm_hidden=4)
+    args.update(kw)
+    return RootStore(**args)
+
+
+def _memory(w: int, a: int, value_of_world: np.ndarray) -> tuple[th.Tensor, th.Tensor]:
+    # (layers, W * A, hidden): every entry of world w holds value_of_world[w]
+    x = th.as_tensor(np.repeat(value_of_world, a)).float().reshape(1, w * a, 1).expand(1, w * a, 4).clone()
+    return x, -x
+
+
+def test_due_worlds_follow_each_worlds_own_clock():
+    s = _store()
+    assert s.due(np.array([0, 3, 10])).tolist() == [0, 2]
+    assert s.due(np.array([90, 91, 85])).tolist() == [0, 2]  # 91 is past the last decision
+
+
+def test_store_and_request_keep_the_right_world_and_step():
+    s = _store()
+    for step in range(0, 80, 5):
+        worlds = np.array([0, 2])
+        snap = {"step": step}
+        pi = _memory(3, 2, np.array([step, -1, step + 1000]))
+        s.store(worlds, np.array([step, step]), snap, pi, pi, np.full((2, 2, 10), step, np.float32), np.array([2, 1]))
+        s.record_step(np.full(3, step), np.arange(6) + step, np.full(6, 0.5), np.zeros(6))
+    steps, _ = s.roots_of(0)
+    # ring of 60 // 5 + 2 = 14 roots: the oldest were overwritten
+    assert sorted(steps.tolist()) == list(range(10, 80, 5))
+    req = s.request(2, 1, failure_step=75, outcome=4, root_step=40)
+    assert req.snapshot == {"step": 40} and req.snapshot_row == 1
+    assert req.depth == 35 and req.deadline == 91
+    assert float(req.pi_state[0][0, 1, 0]) == 1040.0 and float(req.pi_state[1][0, 0, 0]) == -1040.0
+    assert req.conditions.shape == (2, 10) and req.conditions[0, 0] == 40
+    assert req.alive_at_root == 1
+    assert req.projected_transitions(7) == 7 * 1 * (91 - 40)
+    assert req.values[75] == 2 * 2 + 1 + 75  # world 2, agent 1 -> env index 5
+    with pytest.raises(ValueError, match="root_step"):
+        s.request(2, 1, 75, 4, root_step=41)
+
+
+def test_new_episode_hides_old_roots_and_garbage_collection():
+    s = _store()
+    pi = _memory(3, 2, np.zeros(3))
+    s.store(np.array([0, 1]), np.array([0, 0]), "a", pi, pi, np.zeros((2, 2, 10)), np.array([2, 2]))
+    s.store(np.array([1]), np.array([5]), "b", pi, pi, np.zeros((1, 2, 10)), np.array([2]))
+    s.new_episodes(np.array([1]))
+    assert s.roots_of(1)[0].size == 0 and s.roots_of(0)[0].tolist() == [0]
+    s.store(np.array([1]), np.array([0]), "c", pi, pi, np.zeros((1, 2, 10)), np.array([2]))  # overwrites ring slot 0
+    s.collect_garbage()
+    assert sorted(s.snapshots.values()) == ["a", "b", "c"]  # "b" is still referenced by the ring
+    s.store(np.array([1]), np.array([5]), "d", pi, pi, np.zeros((1, 2, 10)), np.array([2]))
+    s.collect_garbage()
+    assert sorted(s.snapshots.values()) == ["a", "c", "d"]
