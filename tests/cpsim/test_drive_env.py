@@ -1,0 +1,230 @@
+"""cpsim/Drive-v0: env checkers, regimes, vector env, learning, rendering, bad input."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium
+import numpy as np
+import pytest
+
+import cpsim  # noqa: F401  (registers cpsim/Drive-v0)
+from cpsim.scenario import generate
+
+STEPS = 15
+
+
+@pytest.fixture(scope="module")
+def scenarios():
+    return [generate("intersection", 2), generate("t_junction", 3)]
+
+
+@pytest.fixture(scope="module")
+def ppo_model(scenarios):
+    """A tiny untrained PPO used as co-player model."""
+    from stable_baselines3 import PPO
+
+    from cpsim.envs.drive import DriveEnv
+
+    env = DriveEnv(scenarios, episode_steps=STEPS, max_agents=6)
+    return PPO("MlpPolicy", env, n_steps=32, batch_size=32, seed=0, device="cpu",
+               policy_kwargs=dict(net_arch=[16]))
+
+
+def make(scenarios, **kw):
+    from cpsim.envs.drive import DriveEnv
+
+    kw.setdefault("episode_steps", STEPS)
+    kw.setdefault("max_agents", 6)
+    return DriveEnv(scenarios, **kw)
+
+
+def test_gymnasium_and_sb3_env_checkers_pass_without_warnings(scenarios):
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = make(scenarios, render_mode="rgb_array")
+        gym_check(env, skip_render_check=False)
+        sb3_check(make(scenarios), warn=True)
+
+
+def test_gymnasium_make_and_episode(scenarios):
+    env = gymnasium.make("cpsim/Drive-v0", scenarios=scenarios, episode_steps=STEPS, max_agents=6)
+    obs, info = env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape and obs.dtype == np.float32
+    assert info["scenario_id"] in {s.id for s in scenarios}
+    for t in range(STEPS + 1):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert isinstance(reward, float)
+        if terminated or truncated:
+            break
+    assert terminated or truncated
+    assert info["outcome"] in ("goal", "collision", "offroad", "timeout")
+    assert truncated == (info["outcome"] == "timeout")
+    assert t + 1 <= STEPS
+
+
+@pytest.mark.parametrize("regime", ["replay", "idm", "static", "policy", "aggressive", "normal",
+                                    "cautious", "mix", "expert"])
+def test_every_regime_runs_an_episode(scenarios, ppo_model, regime):
+    from cpsim.conditions import profile
+    from cpsim.envs.regimes import MIX_PROFILES
+
+    env = make(scenarios, regime=regime, coplayer_model=ppo_model, condition="normal", max_agents=5)
+    env.reset(seed=1, options={"scenario_index": 0})
+    ctrl = env.sim.controllers.cpu().numpy()[0]
+    co = env.driver.coplayer_mask(env.sim)[0]
+    assert ctrl[0] == 0 and co.any()
+    expected = {"replay": 1, "expert": 1, "idm": 2, "static": 3}.get(regime, 0)
+    assert np.all(ctrl[co] == expected)
+    cond = env.sim.conditions.cpu().numpy()[0]
+    np.testing.assert_allclose(cond[0], profile("normal"))  # the ego's condition
+    if regime in ("aggressive", "normal", "cautious"):
+        np.testing.assert_allclose(cond[co], np.broadcast_to(profile(regime), cond[co].shape))
+    if regime == "mix":
+        choice = env.driver.mix_choice[0][co]
+        for c, k in zip(cond[co], choice):
+            np.testing.assert_allclose(c, profile(MIX_PROFILES[k]))
+    done, n = False, 0
+    while not done:
+        _, _, terminated, truncated, info = env.step(env.action_space.sample())
+        done = terminated or truncated
+        n += 1
+        assert n <= STEPS
+    assert "outcome" in info
+
+
+def test_policy_regime_coplayers_follow_the_model(scenarios):
+    """A callable co-player model that always brakes hard: co-players slow down, ego untouched."""
+    calls = []
+
+    def brake(obs):
+        calls.append(obs.shape)
+        return np.zeros(obs.shape[0], np.int64)  # jerk -15, lateral -4
+
+    env = make(scenarios, regime="policy", coplayer_model=brake)
+    env.reset(seed=0, options={"scenario_index": 0})
+    co = env.driver.coplayer_mask(env.sim)[0]
+    v0 = env.sim.speed.cpu().numpy()[0].copy()
+    for _ in range(5):
+        env.step(7)  # ego: zero jerk
+    v1 = env.sim.speed.cpu().numpy()[0]
+    alive = env.sim.alive.cpu().numpy()[0]
+    assert calls and all(s[1] == env.observation_space.shape[0] for s in calls)
+    assert calls[0][0] == co.sum()
+    braked = co & alive & (v0 > 1.0)
+    assert braked.any() and np.all(v1[braked] < v0[braked])
+
+
+def test_recurrent_coplayer_state_is_kept_per_slot(scenarios):
+    from sb3_contrib import RecurrentPPO
+
+    env = make(scenarios)
+    model = RecurrentPPO("MlpLstmPolicy", env, n_steps=16, batch_size=16, seed=0, device="cpu",
+                         policy_kwargs=dict(lstm_hidden_size=8, net_arch=[8]))
+    env2 = make(scenarios, regime="normal", coplayer_model=model)
+    env2.reset(seed=0, options={"scenario_index": 0})
+    env2.step(7)
+    state = env2.driver._state
+    assert state is not None and state[0].shape[1] == env2.sim.num_worlds * env2.sim.max_agents
+    co = env2.driver.coplayer_mask(env2.sim)[0]
+    assert np.any(state[0][:, co] != 0) and np.all(state[0][:, ~co] == 0)
+
+
+@pytest.mark.parametrize("algo", ["PPO", "A2C", "DQN", "RecurrentPPO"])
+def test_short_learn(scenarios, algo):
+    import sb3_contrib
+    import stable_baselines3
+
+    cls = getattr(stable_baselines3, algo, None) or getattr(sb3_contrib, algo)
+    env = make(scenarios)
+    kw = dict(seed=0, device="cpu")
+    if algo == "PPO":
+        kw.update(n_steps=64, batch_size=32, n_epochs=1)
+    elif algo == "A2C":
+        kw.update(n_steps=8)
+    elif algo == "DQN":
+        kw.update(learning_starts=32, buffer_size=500, train_freq=4)
+    else:
+        kw.update(n_steps=64, batch_size=32, n_epochs=1, policy_kwargs=dict(lstm_hidden_size=16, net_arch=[16]))
+    policy = "MlpLstmPolicy" if algo == "RecurrentPPO" else "MlpPolicy"
+    model = cls(policy, env, **kw)
+    model.learn(total_timesteps=128)
+    assert model.num_timesteps >= 128
+    action, _ = model.predict(env.reset(seed=0)[0], deterministic=True)
+    assert env.action_space.contains(int(action))
+
+
+def test_make_vec_uses_one_batched_simulator(scenarios):
+    from cpsim.envs.drive import DriveVectorEnv
+
+    venv = gymnasium.make_vec("cpsim/Drive-v0", num_envs=3, scenarios=scenarios, episode_steps=STEPS,
+                              max_agents=4)
+    assert isinstance(venv.unwrapped, DriveVectorEnv)
+    assert venv.unwrapped.sim.num_worlds == 3
+    obs, _ = venv.reset(seed=0)
+    assert obs.shape == (3, venv.single_observation_space.shape[0]) and obs.dtype == np.float32
+    ended = np.zeros(3, bool)
+    autoreset = np.zeros(3, bool)
+    for _ in range(STEPS + 2):
+        obs, rew, term, trunc, infos = venv.step(venv.action_space.sample())
+        # NEXT_STEP autoreset: the step after an end returns a fresh episode with reward 0
+        assert np.all(rew[autoreset] == 0) and not np.any((term | trunc)[autoreset])
+        done = term | trunc
+        if done.any():
+            assert set(infos["outcome"][done]) <= {"goal", "collision", "offroad", "timeout"}
+            assert np.array_equal(infos["_outcome"], done)
+        ended |= done
+        autoreset = done
+    assert ended.all()
+    venv.close()
+
+
+def test_rendering_changes_between_steps(scenarios):
+    env = make(scenarios, render_mode="rgb_array", camera="ego")
+    env.reset(seed=0)
+    f0 = env.render()
+    env.step(10)
+    env.step(10)
+    f1 = env.render()
+    assert f0.shape == (480, 480, 3) and f0.dtype == np.uint8
+    assert len(np.unique(f0.reshape(-1, 3), axis=0)) > 5
+    assert not np.array_equal(f0, f1)
+
+
+def test_bad_input(scenarios):
+    from cpsim.envs.regimes import TrafficDriver
+
+    with pytest.raises(ValueError, match="accepted"):
+        make(scenarios, regime="rush_hour")
+    with pytest.raises(ValueError, match="needs a co-player model"):
+        make(scenarios, regime="mix")
+    with pytest.raises(ValueError, match="accepted"):
+        make(None, family="highway")
+    with pytest.raises(ValueError, match="profile"):
+        make(scenarios, condition="sporty")
+    with pytest.raises(ValueError, match="render_mode"):
+        make(scenarios, render_mode="human")
+    with pytest.raises(ValueError, match="only one"):
+        make(scenarios, family="intersection")
+    with pytest.raises(ValueError, match="condition applies"):
+        TrafficDriver("idm", condition="normal")
+    env = make(scenarios)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="accepted: 0..11"):
+        env.step(12)
+    with pytest.raises(ValueError, match="accepted: 0..11"):
+        env.step(-1)
+    with pytest.raises(ValueError, match="scenario_index"):
+        env.reset(options={"scenario_index": 5})
+    with pytest.raises(ValueError, match="unknown key"):
+        env.reset(options={"speed": 3})
+
+
+def test_classic_dynamics_action_space(scenarios):
+    env = make(scenarios, dynamics="classic")
+    assert env.action_space.n == 91
+    env.reset(seed=0)
+    env.step(90)

@@ -1,0 +1,173 @@
+"""SelfPlayVecEnv: SB3 VecEnv contract, inactive-slot contract, copies, wrappers, learning."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cpsim.scenario import generate
+
+W, A = 2, 6
+STEPS = 12  # short episodes keep the tests fast
+
+
+@pytest.fixture(scope="module")
+def scenarios():
+    return [generate("intersection", 0), generate("merge", 1)]
+
+
+@pytest.fixture(scope="module")
+def env(scenarios):
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    e = SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, seed=3, episode_steps=STEPS)
+    yield e
+    e.close()
+
+
+def _random_actions(env, rng):
+    return rng.integers(0, env.action_space.n, size=env.num_envs)
+
+
+def test_spaces_and_attributes(env):
+    from gymnasium import spaces
+
+    assert env.num_envs == W * A
+    assert isinstance(env.observation_space, spaces.Box)
+    assert env.observation_space.shape == (env.obs_layout.size,)
+    assert env.action_space == spaces.Discrete(12)
+    assert env.num_worlds == W and env.max_agents == A and env.sim.num_worlds == W
+    assert env.get_attr("max_agents", [0, 3]) == [A, A]
+    env.set_attr("render_worlds", 2)
+    assert env.render_worlds == 2
+    assert env.env_method("active_mask", indices=[1])[0].shape == (W * A,)
+    assert env.env_is_wrapped(object) == [False] * env.num_envs
+
+
+def test_reset_obs_copy_and_inactive_slots_zero(env):
+    obs = env.reset()
+    assert obs.dtype == np.float32 and obs.shape == (W * A, env.obs_layout.size)
+    active = env.active_mask()
+    policy = env.sim.policy_mask.cpu().numpy().reshape(-1)
+    np.testing.assert_array_equal(active, policy)
+    assert active.any()
+    assert np.all(obs[~active] == 0)
+    assert np.any(obs[active] != 0, axis=1).all()
+    # a copy, not a view onto simulator memory
+    before = obs.copy()
+    env.step(np.zeros(env.num_envs, np.int64))
+    np.testing.assert_array_equal(obs, before)
+
+
+def test_episode_contract_infos_and_autoreset(env):
+    rng = np.random.default_rng(0)
+    env.seed(5)
+    env.reset()
+    prev_active = env.active_mask()
+    saw_done = saw_timeout = False
+    for _ in range(2 * STEPS + 2):
+        obs, rew, done, infos = env.step(_random_actions(env, rng))
+        assert obs.dtype == np.float32 and rew.dtype == np.float32 and done.dtype == bool
+        assert len(infos) == env.num_envs
+        active = env.active_mask()
+        assert [i["active"] for i in infos] == active.tolist()
+        # inactive before the step: reward 0, never done
+        assert np.all(rew[~prev_active] == 0) and not np.any(done[~prev_active])
+        # inactive now: zero observation (unless a done index just got a fresh episode)
+        assert np.all(obs[~active] == 0)
+        for i in np.flatnonzero(done):
+            info = infos[i]
+            assert {"terminal_observation", "TimeLimit.truncated", "is_success", "outcome", "active"} <= set(info)
+            assert info["outcome"] in ("goal", "collision", "offroad", "timeout")
+            assert info["is_success"] == (info["outcome"] == "goal")
+            assert info["TimeLimit.truncated"] == (info["outcome"] == "timeout")
+            assert info["terminal_observation"].shape == obs.shape[1:]
+            saw_done = True
+            saw_timeout |= info["outcome"] == "timeout"
+        for i in np.flatnonzero(~done):
+            assert "terminal_observation" not in infos[i]
+        prev_active = active
+    assert saw_done and saw_timeout
+    # every world was reset by the timeout: its step counter restarted
+    assert int(env.sim.step_count.max()) < STEPS
+
+
+def test_world_reset_after_timeout_gives_active_slots(env):
+    env.reset()
+    zeros = np.zeros(env.num_envs, np.int64)
+    for _ in range(STEPS - 1):
+        env.step(zeros)
+    obs, _, done, infos = env.step(zeros)
+    # at the horizon every still-running slot times out and its world restarts
+    assert done.any()
+    assert all(infos[i]["TimeLimit.truncated"] or infos[i]["outcome"] != "timeout" for i in np.flatnonzero(done))
+    assert env.active_mask().any()
+    assert np.all(env.sim.step_count.cpu().numpy() == 0)
+
+
+def test_seed_makes_resets_reproducible(env):
+    env.seed(11)
+    a = env.reset()
+    env.seed(11)
+    b = env.reset()
+    np.testing.assert_array_equal(a, b)
+
+
+def test_bad_actions(env):
+    env.reset()
+    bad = np.zeros(env.num_envs, np.int64)
+    bad[np.flatnonzero(env.active_mask())[0]] = 12
+    with pytest.raises(ValueError, match="outside the action space"):
+        env.step(bad)
+    with pytest.raises(ValueError, match="expected"):
+        env.step(np.zeros(3, np.int64))
+
+
+def test_bad_construction(scenarios):
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    with pytest.raises(ValueError, match="profile"):
+        SelfPlayVecEnv(scenarios, num_worlds=1, max_agents=2, condition="sporty")
+    with pytest.raises(ValueError, match="unknown key"):
+        SelfPlayVecEnv(scenarios, num_worlds=1, max_agents=2, not_a_setting=3)
+    with pytest.raises(ValueError, match="family"):
+        SelfPlayVecEnv(family="highway", num_worlds=1, max_agents=2)
+
+
+def test_fixed_condition_is_applied(scenarios):
+    from cpsim.conditions import profile
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    e = SelfPlayVecEnv(scenarios, num_worlds=1, max_agents=3, condition="cautious", episode_steps=STEPS)
+    e.reset()
+    cond = e.sim.conditions.cpu().numpy()[0]
+    present = e.sim.agent_index.cpu().numpy()[0] >= 0
+    np.testing.assert_allclose(cond[present], np.broadcast_to(profile("cautious"), cond[present].shape))
+
+
+def test_ppo_and_recurrent_ppo_learn_under_wrappers(env):
+    from sb3_contrib import RecurrentPPO
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    wrapped = VecNormalize(VecMonitor(env), norm_reward=True)
+    model = PPO("MlpPolicy", wrapped, n_steps=16, batch_size=48, n_epochs=1, seed=0, device="cpu")
+    model.learn(total_timesteps=2 * 16 * env.num_envs)
+    assert model.num_timesteps >= 2 * 16 * env.num_envs
+    ep_info = list(model.ep_info_buffer)
+    assert ep_info and all(np.isfinite(e["r"]) for e in ep_info)
+
+    rmodel = RecurrentPPO("MlpLstmPolicy", env, n_steps=16, batch_size=48, n_epochs=1, seed=0, device="cpu",
+                          policy_kwargs=dict(lstm_hidden_size=32, net_arch=[32]))
+    rmodel.learn(total_timesteps=16 * env.num_envs)
+    assert rmodel.num_timesteps >= 16 * env.num_envs
+
+
+def test_render_tiles_worlds(scenarios):
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    e = SelfPlayVecEnv(scenarios, num_worlds=2, max_agents=3, render_mode="rgb_array", episode_steps=STEPS)
+    e.reset()
+    img = e.render()
+    assert img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 5
