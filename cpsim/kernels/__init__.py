@@ -1,0 +1,36 @@
+"""Warp kernels of the simulator, grouped by stage; all belong to one Warp module.
+
+* :mod:`~cpsim.kernels.geometry`: SAT, segment tests, grid and lane queries, collision
+  cases / fault (Warp functions + NumPy references).
+* :mod:`~cpsim.kernels.dynamics`: jerk and classic models, the motion kernel.
+* :mod:`~cpsim.kernels.controllers`: IDM along logged paths.
+* :mod:`~cpsim.kernels.reward`: conditioned reward terms.
+* :mod:`~cpsim.kernels.metrics`: events, outcomes, removal, metrics; per-world bookkeeping.
+* :mod:`~cpsim.kernels.observation`: the observation kernel.
+* :mod:`~cpsim.kernels.snapshot`: reset and world copies (snapshot / restore).
+
+Importing this package registers every kernel; :func:`load` compiles (or loads from the
+kernel cache) the module for a device up front.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from cpsim.kernels import controllers, dynamics, geometry, metrics, observation, reward, snapshot  # noqa: F401
+from cpsim.kernels.common import KERNEL_MODULE
+
+_loaded: set[str] = set()
+
+
+def load(device: str = "cpu") -> None:
+    """Compile or load every simulator kernel for ``device`` (once per process)."""
+    key = str(device)
+    if key in _loaded:
+        return
+    wp.init()
+    wp.load_module(KERNEL_MODULE, device=device)
+    _loaded.add(key)
+
+
+__all__ = ["load", "KERNEL_MODULE"]

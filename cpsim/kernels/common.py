@@ -1,0 +1,111 @@
+"""Run-time parameters passed to every kernel, and the name of the shared Warp module.
+
+All kernels of ``cpsim.kernels`` are registered in one Warp module (:data:`KERNEL_MODULE`)
+so the whole simulator compiles once (a few seconds, then milliseconds from the kernel
+cache). Configuration values travel in :class:`Params` at run time: changing the config
+never recompiles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import warp as wp
+
+from cpsim.config import DYNAMICS_MODELS, EVENT_RULES, SimConfig
+
+#: The single Warp module every simulator kernel belongs to.
+KERNEL_MODULE = "cpsim.kernels"
+#: Options of that module: no adjoints (nothing differentiates through the simulator).
+KERNEL_OPTIONS = {"enable_backward": False}
+wp.set_module_options(KERNEL_OPTIONS, module=KERNEL_MODULE)
+
+# Controller / outcome / type codes as Warp constants (mirror cpsim.config / datatypes).
+POLICY = wp.constant(0)
+REPLAY = wp.constant(1)
+IDM = wp.constant(2)
+STATIC = wp.constant(3)
+NO_CONTROLLER = wp.constant(4)
+RUNNING = wp.constant(0)
+GOAL = wp.constant(1)
+COLLISION = wp.constant(2)
+OFFROAD = wp.constant(3)
+TIMEOUT = wp.constant(4)
+VEHICLE = wp.constant(0)
+LAST_LOG_STEP = wp.constant(90)
+RULE_REMOVE = wp.constant(0)
+RULE_STOP = wp.constant(1)
+RULE_IGNORE = wp.constant(2)
+
+
+@wp.struct
+class Params:
+    """Scalar settings of a run (see :class:`cpsim.SimConfig` for meanings and units)."""
+
+    dt: float
+    episode_steps: int
+    dynamics: int           # 0 jerk, 1 classic
+    num_partners: int       # K
+    num_road: int           # M
+    partner_radius: float
+    road_radius: float
+    on_goal: int            # 0 remove, 1 stop, 2 ignore
+    on_collision: int
+    on_offroad: int
+    box_scale: float
+    lane_radius: float
+    align_rad: float
+    lane_width: float
+    no_lane_offset: float
+    collide_types: int
+    step_penalty: float
+    road_max_segment: float
+    idm_accel: float
+    idm_brake: float
+    idm_headway: float
+    idm_min_gap: float
+    idm_lookahead: float
+    obs_dim: int            # D
+    obs_condition: int      # first index of the condition slice
+    obs_partners: int       # first index of the partner block
+    obs_road: int           # first index of the road block
+    partner_features: int
+    road_features: int
+
+
+def make_params(config: SimConfig, layout) -> Params:
+    """Fill :class:`Params` from a config and an :class:`cpsim.observation.ObsLayout`."""
+    p = Params()
+    p.dt = float(config.dt)
+    p.episode_steps = int(config.episode_steps)
+    p.dynamics = DYNAMICS_MODELS[config.dynamics]
+    p.num_partners = int(config.num_partners)
+    p.num_road = int(config.num_road)
+    p.partner_radius = float(config.partner_radius)
+    p.road_radius = float(config.road_radius)
+    p.on_goal = EVENT_RULES[config.on_goal]
+    p.on_collision = EVENT_RULES[config.on_collision]
+    p.on_offroad = EVENT_RULES[config.on_offroad]
+    p.box_scale = float(config.box_scale)
+    p.lane_radius = float(config.lane_radius)
+    p.align_rad = math.radians(config.align_deg)
+    p.lane_width = float(config.lane_width)
+    p.no_lane_offset = float(config.no_lane_offset)
+    p.collide_types = int(bool(config.collide_types))
+    p.step_penalty = float(config.step_penalty)
+    p.road_max_segment = float(config.road_max_segment)
+    p.idm_accel = float(config.idm_accel)
+    p.idm_brake = float(config.idm_brake)
+    p.idm_headway = float(config.idm_headway)
+    p.idm_min_gap = float(config.idm_min_gap)
+    p.idm_lookahead = float(config.idm_lookahead)
+    p.obs_dim = int(layout.size)
+    p.obs_condition = int(layout.condition.start)
+    p.obs_partners = int(layout.partners.start)
+    p.obs_road = int(layout.road.start)
+    p.partner_features = int(layout.partner_features)
+    p.road_features = int(layout.road_features)
+    return p
+
+
+__all__ = ["KERNEL_MODULE", "KERNEL_OPTIONS", "Params", "make_params"]

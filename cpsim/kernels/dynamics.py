@@ -1,0 +1,288 @@
+"""Vehicle dynamics and the per-step motion kernel (all controllers).
+
+Jerk model (BehaviorBench / PufferDrive "jerk", default; 12 actions,
+index = long_idx * 3 + lat_idx over long jerk {-15, -4, 0, 4} x lat jerk {-4, 0, 4} m/s^3):
+
+    a_long' = a_long + j_long dt, set to 0 if it changes sign, else clipped to [-5, 2.5]
+    a_lat'  = a_lat + j_lat dt,   set to 0 if it changes sign, else clipped to [-4, 4]
+    v_s = |v| signed by v . heading;  v' = v_s + (a_long + a_long') dt / 2,
+          set to 0 if it changes sign, else clipped to [-2, 20]
+    kappa = a_lat' / max(v'^2, 1e-5) (|kappa| >= 1e-5), wheelbase = 0.6 length
+    steer' = clip(steer + clip(atan(kappa wheelbase) - steer, -0.6 dt, 0.6 dt), -0.55, 0.55)
+    kappa = tan(steer') / wheelbase;  a_lat' = v'^2 kappa
+    d = (v' + v_s) dt / 2;  theta = d kappa;  arc (sin theta / kappa, (1 - cos theta) / kappa)
+    in the heading frame (straight when |kappa| or |theta| < 1e-5); heading += theta;
+    velocity = v' (cos, sin)(heading').
+
+Classic bicycle (GPUDrive / PufferDrive 2.0; 91 actions, index = accel_idx * 13 + steer_idx
+over accel {-4, -2.667, -1.333, 0, 1.333, 2.667, 4} m/s^2 x steer linspace(-1, 1, 13) rad),
+identical to PufferDrive step for step:
+
+    v = |velocity|;  v' = clip(v + a dt, -100, 100);  beta = tanh(0.5 tan(delta))
+    yaw_rate = v cos(beta) tan(delta) / length   (the speed before the update)
+    velocity = v' (cos, sin)(heading + beta);  position += velocity dt;
+    heading = wrap(heading + yaw_rate dt)
+
+Reported for metrics: a_long = the new longitudinal acceleration (jerk: state; classic: the
+command; replay / IDM: finite difference of the signed speed), a_lat (jerk: state; others:
+speed x yaw rate), jerk = (a_long' - a_long) / dt.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER, JERK_LAT, JERK_LONG
+from cpsim.kernels.common import (IDM, KERNEL_MODULE, KERNEL_OPTIONS, LAST_LOG_STEP, POLICY,
+                                  REPLAY, STATIC, Params)
+from cpsim.kernels.controllers import path_pose
+from cpsim.kernels.geometry import wrap_angle
+from cpsim.model import ModelArrays
+from cpsim.state import State
+
+WHEELBASE_FRACTION = 0.6
+JERK_A_LONG_RANGE = (-5.0, 2.5)
+JERK_A_LAT_RANGE = (-4.0, 4.0)
+JERK_SPEED_RANGE = (-2.0, 20.0)
+STEER_RATE = 0.6
+STEER_LIMIT = 0.55
+CLASSIC_SPEED_LIMIT = 100.0
+WHEELBASE = wp.constant(WHEELBASE_FRACTION)
+
+_JERK_LONG = wp.constant(wp.types.vector(4, wp.float32)(*JERK_LONG.tolist()))
+_JERK_LAT = wp.constant(wp.types.vector(3, wp.float32)(*JERK_LAT.tolist()))
+_CLASSIC_ACCEL = wp.constant(wp.types.vector(7, wp.float32)(*CLASSIC_ACCEL.tolist()))
+_CLASSIC_STEER = wp.constant(wp.types.vector(13, wp.float32)(*CLASSIC_STEER.tolist()))
+
+
+# ============================================================================ Warp functions
+@wp.func
+def jerk_step(pos: wp.vec2f, heading: float, vel: wp.vec2f, a_long: float, a_lat: float,
+              steer: float, length: float, j_long: float, j_lat: float, dt: float):
+    """One jerk-model step. Returns (pos, heading, vel, a_long, a_lat, steer, signed speed)."""
+    hx = wp.cos(heading)
+    hy = wp.sin(heading)
+    wheelbase = 0.6 * length
+    a_long_new = a_long + j_long * dt
+    a_lat_new = a_lat + j_lat * dt
+    if a_long * a_long_new < 0.0:
+        a_long_new = 0.0
+    else:
+        a_long_new = wp.clamp(a_long_new, -5.0, 2.5)
+    if a_lat * a_lat_new < 0.0:
+        a_lat_new = 0.0
+    else:
+        a_lat_new = wp.clamp(a_lat_new, -4.0, 4.0)
+    speed = wp.length(vel)
+    signed_v = speed
+    if vel[0] * hx + vel[1] * hy < 0.0:
+        signed_v = -speed
+    v_new = signed_v + 0.5 * (a_long_new + a_long) * dt
+    if signed_v * v_new < 0.0:
+        v_new = 0.0
+    else:
+        v_new = wp.clamp(v_new, -2.0, 20.0)
+    curv = a_lat_new / wp.max(v_new * v_new, 1.0e-5)
+    mag = wp.max(wp.abs(curv), 1.0e-5)
+    if curv < 0.0:
+        curv = -mag
+    else:
+        curv = mag
+    target = wp.atan(curv * wheelbase)
+    steer_new = wp.clamp(steer + wp.clamp(target - steer, -0.6 * dt, 0.6 * dt), -0.55, 0.55)
+    curv = wp.tan(steer_new) / wheelbase
+    a_lat_new = v_new * v_new * curv
+    d = 0.5 * (v_new + signed_v) * dt
+    theta = d * curv
+    dx = d
+    dy = float(0.0)
+    if not (wp.abs(curv) < 1.0e-5 or wp.abs(theta) < 1.0e-5):
+        dx = wp.sin(theta) / curv
+        dy = (1.0 - wp.cos(theta)) / curv
+    new_pos = pos + wp.vec2f(dx * hx - dy * hy, dx * hy + dy * hx)
+    new_heading = wrap_angle(heading + theta)
+    new_vel = wp.vec2f(v_new * wp.cos(new_heading), v_new * wp.sin(new_heading))
+    return new_pos, new_heading, new_vel, a_long_new, a_lat_new, steer_new, v_new
+
+
+@wp.func
+def classic_step(pos: wp.vec2f, heading: float, vel: wp.vec2f, length: float, accel: float,
+                 steering: float, dt: float):
+    """One classic bicycle step. Returns (pos, heading, vel, signed speed, yaw rate)."""
+    speed = wp.length(vel)
+    speed_new = wp.clamp(speed + accel * dt, -100.0, 100.0)
+    beta = wp.tanh(0.5 * wp.tan(steering))
+    yaw_rate = speed * wp.cos(beta) * wp.tan(steering) / length
+    new_vel = wp.vec2f(speed_new * wp.cos(heading + beta), speed_new * wp.sin(heading + beta))
+    new_pos = pos + new_vel * dt
+    new_heading = wrap_angle(heading + yaw_rate * dt)
+    return new_pos, new_heading, new_vel, speed_new, yaw_rate
+
+
+@wp.func
+def signed_speed(vel: wp.vec2f, heading: float) -> float:
+    s = wp.length(vel)
+    if vel[0] * wp.cos(heading) + vel[1] * wp.sin(heading) < 0.0:
+        s = -s
+    return s
+
+
+# ============================================================================ kernel
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: wp.array2d(dtype=wp.int32)):
+    """Move every live agent one step with its controller (over (W, A)).
+
+    Also clears last step's done flags, stores the previous pose (swept off-road test) and
+    sets ``present``. Replayed agents whose log becomes invalid vanish here (alive False,
+    done and truncated). Worlds whose episode is over are left unchanged.
+    """
+    w, a = wp.tid()
+    state.done[w, a] = False
+    state.terminated[w, a] = False
+    state.truncated[w, a] = False
+    if state.step_count[w] >= params.episode_steps or not state.alive[w, a]:
+        state.present[w, a] = False
+        return
+    dt = params.dt
+    ctrl = state.controller[w, a]
+    pos = state.pos[w, a]
+    heading = state.heading[w, a]
+    vel = state.vel[w, a]
+    old_speed = state.speed[w, a]
+    old_accel = state.accel[w, a]
+    state.prev_pos[w, a] = pos
+    state.prev_heading[w, a] = heading
+    length = state.size[w, a][0]
+    new_pos = pos
+    new_heading = heading
+    new_vel = vel
+    new_speed = old_speed
+    new_accel = old_accel
+    new_lat = state.lat_accel[w, a]
+    new_steer = state.steer[w, a]
+    if ctrl == POLICY:
+        act = actions[w, a]
+        if params.dynamics == 0:
+            jl = _JERK_LONG[act // 3]
+            jt = _JERK_LAT[act % 3]
+            new_pos, new_heading, new_vel, new_accel, new_lat, new_steer, new_speed = jerk_step(
+                pos, heading, vel, old_accel, new_lat, new_steer, length, jl, jt, dt)
+        else:
+            acc = _CLASSIC_ACCEL[act // 13]
+            st = _CLASSIC_STEER[act % 13]
+            yaw = float(0.0)
+            new_pos, new_heading, new_vel, new_speed, yaw = classic_step(pos, heading, vel, length, acc, st, dt)
+            new_accel = acc
+            new_lat = new_speed * yaw
+            new_steer = st
+    elif ctrl == REPLAY:
+        row = state.agent_row[w, a]
+        t = wp.min(state.step_count[w] + 1, LAST_LOG_STEP)
+        if not model.log_valid[row, t]:
+            # the log ends: the agent leaves the world
+            state.alive[w, a] = False
+            state.present[w, a] = False
+            state.finished[w, a] = True
+            state.done[w, a] = True
+            state.truncated[w, a] = True
+            return
+        new_pos = model.log_xy[row, t]
+        new_heading = model.log_heading[row, t]
+        new_vel = model.log_vel[row, t]
+        new_speed = signed_speed(new_vel, new_heading)
+    elif ctrl == IDM:
+        row = state.agent_row[w, a]
+        v = wp.max(old_speed, 0.0)
+        v_new = wp.max(v + state.idm_accel[w, a] * dt, 0.0)
+        s = state.idm_s[w, a] + 0.5 * (v + v_new) * dt
+        k = state.idm_k[w, a]
+        new_pos, new_heading, k = path_pose(model, row, s, k)
+        state.idm_s[w, a] = s
+        state.idm_k[w, a] = k
+        new_speed = v_new
+        new_vel = wp.vec2f(v_new * wp.cos(new_heading), v_new * wp.sin(new_heading))
+    elif ctrl == STATIC:
+        new_vel = wp.vec2f(0.0, 0.0)
+        new_speed = 0.0
+    if ctrl != POLICY:
+        # derived quantities for metrics: finite differences of the driven motion
+        new_accel = (new_speed - old_speed) / dt
+        dh = wrap_angle(new_heading - heading)
+        new_lat = new_speed * dh / dt
+        ds = wp.length(new_pos - pos)
+        if ds > 1.0e-3:
+            new_steer = wp.atan(dh / ds * WHEELBASE * length)
+        if ctrl == STATIC:
+            new_accel = 0.0
+            new_lat = 0.0
+    state.pos[w, a] = new_pos
+    state.heading[w, a] = new_heading
+    state.vel[w, a] = new_vel
+    state.speed[w, a] = new_speed
+    state.jerk[w, a] = (new_accel - old_accel) / dt
+    state.accel[w, a] = new_accel
+    state.lat_accel[w, a] = new_lat
+    state.steer[w, a] = new_steer
+    state.present[w, a] = True
+
+
+
+# ============================================================================ NumPy references
+def decode_action(dynamics: str, action: int) -> tuple[float, float]:
+    """(longitudinal, lateral) command of an action index: jerks (jerk) or (accel, steer) (classic)."""
+    if dynamics == "jerk":
+        return float(JERK_LONG[action // 3]), float(JERK_LAT[action % 3])
+    return float(CLASSIC_ACCEL[action // 13]), float(CLASSIC_STEER[action % 13])
+
+
+def jerk_step_np(x, y, heading, vx, vy, a_long, a_lat, steer, length, j_long, j_lat, dt=0.1):
+    """Reference jerk step in float64; returns a dict of the new state."""
+    hx, hy = math.cos(heading), math.sin(heading)
+    wb = WHEELBASE_FRACTION * length
+    aln = a_long + j_long * dt
+    atn = a_lat + j_lat * dt
+    aln = 0.0 if a_long * aln < 0 else float(np.clip(aln, *JERK_A_LONG_RANGE))
+    atn = 0.0 if a_lat * atn < 0 else float(np.clip(atn, *JERK_A_LAT_RANGE))
+    speed = math.hypot(vx, vy)
+    sv = -speed if vx * hx + vy * hy < 0 else speed
+    vn = sv + 0.5 * (aln + a_long) * dt
+    vn = 0.0 if sv * vn < 0 else float(np.clip(vn, *JERK_SPEED_RANGE))
+    curv = atn / max(vn * vn, 1e-5)
+    curv = math.copysign(max(abs(curv), 1e-5), curv) if curv != 0 else 1e-5
+    target = math.atan(curv * wb)
+    steer_n = float(np.clip(steer + np.clip(target - steer, -STEER_RATE * dt, STEER_RATE * dt),
+                            -STEER_LIMIT, STEER_LIMIT))
+    curv = math.tan(steer_n) / wb
+    atn = vn * vn * curv
+    d = 0.5 * (vn + sv) * dt
+    theta = d * curv
+    if abs(curv) < 1e-5 or abs(theta) < 1e-5:
+        dx, dy = d, 0.0
+    else:
+        dx, dy = math.sin(theta) / curv, (1 - math.cos(theta)) / curv
+    hn = float(wrap(heading + theta))
+    return {"x": x + dx * hx - dy * hy, "y": y + dx * hy + dy * hx, "heading": hn,
+            "vx": vn * math.cos(hn), "vy": vn * math.sin(hn), "a_long": aln, "a_lat": atn,
+            "steer": steer_n, "speed": vn}
+
+
+def classic_step_np(x, y, heading, vx, vy, length, accel, steering, dt=0.1):
+    """Reference classic (PufferDrive) step in float64; returns a dict of the new state."""
+    speed = math.hypot(vx, vy)
+    sn = float(np.clip(speed + accel * dt, -CLASSIC_SPEED_LIMIT, CLASSIC_SPEED_LIMIT))
+    beta = math.tanh(0.5 * math.tan(steering))
+    yaw = speed * math.cos(beta) * math.tan(steering) / length
+    vxn, vyn = sn * math.cos(heading + beta), sn * math.sin(heading + beta)
+    return {"x": x + vxn * dt, "y": y + vyn * dt, "heading": float(wrap(heading + yaw * dt)),
+            "vx": vxn, "vy": vyn, "speed": sn, "yaw_rate": yaw}
+
+
+def wrap(a: float) -> float:
+    return a - 2.0 * math.pi * math.floor((a + math.pi) / (2.0 * math.pi))
+
+
+__all__ = ["jerk_step", "classic_step", "dynamics_kernel", "jerk_step_np", "classic_step_np",
+           "decode_action", "WHEELBASE_FRACTION"]

@@ -1,0 +1,212 @@
+"""Events, outcomes, removal, reward and metrics of a step; per-world bookkeeping.
+
+``events_kernel`` runs after the motion kernel, over (W, A). For each agent present in the
+step it tests, against the poses after the motion:
+
+* collision with any other present collidable agent (SAT, distance pre-filter; scaled boxes),
+  the partner being the nearest colliding one, and the nuPlan collision case / fault;
+* off-road (vehicles only): a road-edge segment of the cell's candidate list hits the box at
+  its current pose or crosses a corner path from the previous pose;
+* goal: |pos - goal| < goal_radius and |speed| <= goal_speed (the agent's condition);
+* the nearest lane (heading error, lateral offset) for metrics, reward and observation.
+
+Then: outcome (sticky; collision > off-road > goal within one step), metrics accumulators,
+reward terms, removal (POLICY and IDM agents only, per ``on_*`` rule; the strongest of
+remove > stop > ignore among the step's events: remove clears ``alive``, stop switches the
+controller to STATIC so the agent holds its position from the next step on; both end the
+agent's episode: done and terminated), and timeout (step == episode_steps: every agent
+still alive whose episode has not ended gets done and truncated, outcome TIMEOUT if still
+RUNNING). Each thread writes only its own agent, so the kernel is race-free.
+
+``finish_kernel`` (over worlds) advances the step counter and sets ``world_done``.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from cpsim.kernels.common import (COLLISION, GOAL, IDM, KERNEL_MODULE, KERNEL_OPTIONS, OFFROAD,
+                                  POLICY, RULE_IGNORE, RULE_REMOVE, RUNNING, STATIC, TIMEOUT,
+                                  VEHICLE, Params)
+from cpsim.kernels.geometry import (box_corner, boxes_overlap, collision_kind, grid_cell,
+                                    kind_at_fault, lane_query, segment_hits_box,
+                                    segments_intersect, spans_two_lanes)
+from cpsim.kernels.reward import comfort_violations, write_reward
+from cpsim.model import ModelArrays
+from cpsim.state import State
+
+
+@wp.func
+def offroad_test(m: ModelArrays, g: int, p: wp.vec2f, h: float, prev_p: wp.vec2f, prev_h: float,
+                 half_len: float, half_wid: float) -> bool:
+    """A road edge touches the box at (p, h) or crosses a corner path from (prev_p, prev_h)."""
+    cell = grid_cell(m, g, p, False)
+    hit = bool(False)
+    if cell >= 0:
+        for q in range(m.edge_start[cell], m.edge_start[cell + 1]):
+            sid = m.edge_items[q]
+            ea = m.seg_a[sid]
+            eb = m.seg_b[sid]
+            if segment_hits_box(ea, eb, p, h, half_len, half_wid):
+                hit = bool(True)
+                break
+            for k in range(4):
+                c0 = box_corner(prev_p, prev_h, half_len, half_wid, k)
+                c1 = box_corner(p, h, half_len, half_wid, k)
+                if segments_intersect(c0, c1, ea, eb):
+                    hit = bool(True)
+            if hit:
+                break
+    return hit
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def events_kernel(state: State, model: ModelArrays, params: Params):
+    """Collisions, off-road, goal, lanes, outcome, metrics, reward, removal, timeout (over (W, A))."""
+    w, a = wp.tid()
+    if state.step_count[w] >= params.episode_steps or not state.present[w, a]:
+        state.reward[w, a] = 0.0
+        for k in range(state.reward_raw.shape[2]):
+            state.reward_raw[w, a, k] = 0.0
+            state.reward_w[w, a, k] = 0.0
+        return
+    t1 = state.step_count[w] + 1
+    g = state.scenario[w]
+    p = state.pos[w, a]
+    h = state.heading[w, a]
+    v = state.speed[w, a]
+    size = state.size[w, a]
+    scale = params.box_scale
+    L = size[0] * scale
+    Wd = size[1] * scale
+    r_i = 0.5 * wp.sqrt(L * L + Wd * Wd)
+    my_type = state.agent_type[w, a]
+    # ---------------------------------------------------------------- collisions
+    collided = bool(False)
+    partner = int(-1)
+    best = float(1.0e30)
+    if my_type == VEHICLE or params.collide_types != 0:
+        num = state.present.shape[1]
+        for j in range(num):
+            if j == a or not state.present[w, j]:
+                continue
+            if state.agent_type[w, j] != VEHICLE and params.collide_types == 0:
+                continue
+            d = state.pos[w, j] - p
+            sj = state.size[w, j]
+            lj = sj[0] * scale
+            wj = sj[1] * scale
+            r_j = 0.5 * wp.sqrt(lj * lj + wj * wj)
+            d2 = wp.dot(d, d)
+            if d2 > (r_i + r_j) * (r_i + r_j):
+                continue
+            if boxes_overlap(p, h, L, Wd, state.pos[w, j], state.heading[w, j], lj, wj):
+                collided = bool(True)
+                if d2 < best:
+                    best = d2
+                    partner = j
+    # ---------------------------------------------------------------- off-road
+    offroad = bool(False)
+    if my_type == VEHICLE:
+        offroad = offroad_test(model, g, p, h, state.prev_pos[w, a], state.prev_heading[w, a], 0.5 * L, 0.5 * Wd)
+    # ---------------------------------------------------------------- goal
+    gr = state.conditions[w, a, 0]
+    gs = state.conditions[w, a, 1]
+    reached = wp.length(p - state.goal[w, a]) < gr and wp.abs(v) <= gs
+    goal_now = reached and state.goal_step[w, a] < 0
+    # ---------------------------------------------------------------- lane
+    sid, ld, offset, err = lane_query(model, g, p, h, params.lane_radius)
+    has_lane = sid >= 0
+    state.has_lane[w, a] = has_lane
+    if has_lane:
+        state.lane_err[w, a] = err
+        state.lane_offset[w, a] = offset
+    else:
+        state.lane_err[w, a] = 0.0
+        state.lane_offset[w, a] = 0.0
+    # ---------------------------------------------------------------- metrics
+    violations = comfort_violations(state.accel[w, a], state.lat_accel[w, a], state.jerk[w, a])
+    state.steps_alive[w, a] = state.steps_alive[w, a] + 1
+    state.comfort_violations[w, a] = state.comfort_violations[w, a] + violations
+    if has_lane and wp.abs(err) < params.align_rad:
+        state.aligned_steps[w, a] = state.aligned_steps[w, a] + 1
+    if has_lane:
+        state.lateral_offset_sum[w, a] = state.lateral_offset_sum[w, a] + wp.abs(offset)
+    else:
+        state.lateral_offset_sum[w, a] = state.lateral_offset_sum[w, a] + params.no_lane_offset
+    if collided:
+        j = partner
+        sj = state.size[w, j]
+        kind = collision_kind(p, h, v, L, Wd, state.pos[w, j], state.heading[w, j], state.speed[w, j],
+                              sj[0] * scale, sj[1] * scale)
+        spans = bool(False)
+        if kind == 4:
+            spans = spans_two_lanes(model, g, p, h, 0.5 * L, 0.5 * Wd, params.lane_radius)
+        if kind_at_fault(kind, spans):
+            state.at_fault[w, a] = True
+        if state.first_collision_step[w, a] < 0:
+            state.first_collision_step[w, a] = t1
+            state.collision_partner[w, a] = partner
+    if offroad and state.first_offroad_step[w, a] < 0:
+        state.first_offroad_step[w, a] = t1
+    if goal_now:
+        state.goal_step[w, a] = t1
+    # ---------------------------------------------------------------- outcome (sticky)
+    if state.outcome[w, a] == RUNNING:
+        if collided:
+            state.outcome[w, a] = COLLISION
+        elif offroad:
+            state.outcome[w, a] = OFFROAD
+        elif goal_now:
+            state.outcome[w, a] = GOAL
+    # ---------------------------------------------------------------- reward
+    state.reward[w, a] = write_reward(state.conditions, state.reward_raw, state.reward_w, w, a,
+                                      goal_now, collided, offroad, violations, has_lane, err, offset, v,
+                                      params.lane_radius, params.lane_width, params.step_penalty)
+    # ---------------------------------------------------------------- removal
+    ctrl = state.controller[w, a]
+    rule = RULE_IGNORE
+    if collided:
+        rule = wp.min(rule, params.on_collision)
+    if offroad:
+        rule = wp.min(rule, params.on_offroad)
+    if goal_now:
+        rule = wp.min(rule, params.on_goal)
+    still_alive = bool(True)
+    if (ctrl == POLICY or ctrl == IDM) and rule != RULE_IGNORE:
+        state.finished[w, a] = True
+        state.done[w, a] = True
+        state.terminated[w, a] = True
+        if rule == RULE_REMOVE:
+            state.alive[w, a] = False
+            still_alive = bool(False)
+        else:
+            state.controller[w, a] = STATIC
+    # ---------------------------------------------------------------- timeout
+    if t1 >= params.episode_steps and still_alive and not state.finished[w, a]:
+        state.finished[w, a] = True
+        state.done[w, a] = True
+        state.truncated[w, a] = True
+        if state.outcome[w, a] == RUNNING:
+            state.outcome[w, a] = TIMEOUT
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def finish_kernel(state: State, params: Params, worlds: wp.array(dtype=wp.int32), advance: int):
+    """Advance the step counter (when ``advance``) and set world_done (over len(worlds))."""
+    i = wp.tid()
+    w = worlds[i]
+    if state.step_count[w] >= params.episode_steps:
+        state.world_done[w] = True
+        return
+    t = state.step_count[w] + advance
+    state.step_count[w] = t
+    any_policy = bool(False)
+    num = state.alive.shape[1]
+    for a in range(num):
+        if state.alive[w, a] and state.controller[w, a] == POLICY:
+            any_policy = bool(True)
+    state.world_done[w] = t >= params.episode_steps or not any_policy
+
+
+__all__ = ["events_kernel", "finish_kernel", "offroad_test"]

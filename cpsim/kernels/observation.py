@@ -1,0 +1,177 @@
+"""Observation kernel: ego-frame features, condition, K nearest partners, M road segments.
+
+Layout and normalisation are documented in :mod:`cpsim.observation`. Cost per agent is
+O(A + K) for partners (one pass with an insertion sort into a K-slot scratch list) and
+O(M) for the road (the grid cell's precomputed candidate list).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
+from cpsim.kernels.common import COLLISION, KERNEL_MODULE, KERNEL_OPTIONS, VEHICLE, Params
+from cpsim.kernels.geometry import grid_cell, to_local
+from cpsim.model import ModelArrays
+from cpsim.state import State
+
+_COND_LOW = wp.constant(wp.types.vector(10, wp.float32)(*TRAIN_LOW.tolist()))
+_COND_SPAN = wp.constant(wp.types.vector(10, wp.float32)(*(TRAIN_HIGH - TRAIN_LOW).tolist()))
+ROAD_LANE = wp.constant(0)
+ROAD_EDGE = wp.constant(2)
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def observation_kernel(state: State, model: ModelArrays, params: Params,
+                       worlds: wp.array(dtype=wp.int32), obs: wp.array3d(dtype=wp.float32),
+                       sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32)):
+    """Write obs[w, a, :] for the worlds listed in ``worlds`` (launch over (len(worlds), A))."""
+    i, a = wp.tid()
+    w = worlds[i]
+    D = params.obs_dim
+    if not state.alive[w, a]:
+        for k in range(D):
+            obs[w, a, k] = 0.0
+        return
+    p = state.pos[w, a]
+    h = state.heading[w, a]
+    c = wp.cos(h)
+    s = wp.sin(h)
+    vel = state.vel[w, a]
+    size = state.size[w, a]
+    # ---------------------------------------------------------------- ego
+    obs[w, a, 0] = state.speed[w, a] / 20.0
+    obs[w, a, 1] = state.accel[w, a] / 5.0
+    obs[w, a, 2] = state.lat_accel[w, a] / 4.0
+    obs[w, a, 3] = state.steer[w, a] / 0.55
+    obs[w, a, 4] = size[0] / 10.0
+    obs[w, a, 5] = size[1] / 5.0
+    g_local = to_local(state.goal[w, a] - p, c, s)
+    g_dist = wp.length(g_local)
+    obs[w, a, 6] = wp.clamp(g_local[0] / 100.0, -1.0, 1.0)
+    obs[w, a, 7] = wp.clamp(g_local[1] / 100.0, -1.0, 1.0)
+    if g_dist > 1.0e-6:
+        obs[w, a, 8] = g_local[0] / g_dist
+        obs[w, a, 9] = g_local[1] / g_dist
+    else:
+        obs[w, a, 8] = 0.0
+        obs[w, a, 9] = 0.0
+    obs[w, a, 10] = wp.min(g_dist / 100.0, 1.0)
+    if state.has_lane[w, a]:
+        obs[w, a, 11] = state.lane_err[w, a] / 3.14159265
+        obs[w, a, 12] = state.lane_offset[w, a] / params.lane_radius
+        obs[w, a, 13] = 1.0
+    else:
+        obs[w, a, 11] = 0.0
+        obs[w, a, 12] = 0.0
+        obs[w, a, 13] = 0.0
+    collided = float(0.0)
+    if state.first_collision_step[w, a] >= 0:
+        collided = 1.0
+    offroad = float(0.0)
+    if state.first_offroad_step[w, a] >= 0:
+        offroad = 1.0
+    obs[w, a, 14] = collided
+    obs[w, a, 15] = offroad
+    obs[w, a, 16] = 1.0 - float(state.step_count[w]) / float(params.episode_steps)
+    # ---------------------------------------------------------------- condition
+    oc = params.obs_condition
+    for f in range(10):
+        obs[w, a, oc + f] = 2.0 * (state.conditions[w, a, f] - _COND_LOW[f]) / _COND_SPAN[f] - 1.0
+    # ---------------------------------------------------------------- partners
+    K = params.num_partners
+    PF = params.partner_features
+    op = params.obs_partners
+    n = int(0)
+    if K > 0:
+        R2 = params.partner_radius * params.partner_radius
+        num = state.alive.shape[1]
+        for j in range(num):
+            if j == a or not state.alive[w, j]:
+                continue
+            rel = state.pos[w, j] - p
+            d2 = wp.dot(rel, rel)
+            if d2 > R2:
+                continue
+            if n == K:
+                if d2 >= sel_d2[w, a, K - 1]:
+                    continue
+            m = n
+            if n == K:
+                m = K - 1
+            while m > 0 and sel_d2[w, a, m - 1] > d2:
+                sel_d2[w, a, m] = sel_d2[w, a, m - 1]
+                sel_idx[w, a, m] = sel_idx[w, a, m - 1]
+                m -= 1
+            sel_d2[w, a, m] = d2
+            sel_idx[w, a, m] = j
+            if n < K:
+                n += 1
+    inv_r = 1.0 / params.partner_radius
+    for k in range(K):
+        base = op + k * PF
+        if k < n:
+            j = sel_idx[w, a, k]
+            rel = to_local(state.pos[w, j] - p, c, s)
+            dh = state.heading[w, j] - h
+            rv = to_local(state.vel[w, j] - vel, c, s)
+            sz = state.size[w, j]
+            obs[w, a, base + 0] = rel[0] * inv_r
+            obs[w, a, base + 1] = rel[1] * inv_r
+            obs[w, a, base + 2] = wp.cos(dh)
+            obs[w, a, base + 3] = wp.sin(dh)
+            obs[w, a, base + 4] = rv[0] / 20.0
+            obs[w, a, base + 5] = rv[1] / 20.0
+            obs[w, a, base + 6] = sz[0] / 10.0
+            obs[w, a, base + 7] = sz[1] / 5.0
+            vru = float(0.0)
+            if state.agent_type[w, j] != VEHICLE:
+                vru = 1.0
+            obs[w, a, base + 8] = vru
+            obs[w, a, base + 9] = 1.0
+        else:
+            for f in range(PF):
+                obs[w, a, base + f] = 0.0
+    # ---------------------------------------------------------------- road
+    M = params.num_road
+    RF = params.road_features
+    orr = params.obs_road
+    mcount = int(0)
+    if M > 0:
+        g = state.scenario[w]
+        cell = grid_cell(model, g, p, True)
+        Rr = params.road_radius
+        R2r = Rr * Rr
+        inv_rr = 1.0 / Rr
+        inv_len = 1.0 / params.road_max_segment
+        for q in range(model.obs_start[cell], model.obs_start[cell + 1]):
+            if mcount >= M:
+                break
+            sid = model.obs_items[q]
+            rel = model.seg_mid[sid] - p
+            if wp.dot(rel, rel) > R2r:
+                continue
+            loc = to_local(rel, c, s)
+            dl = to_local(model.seg_dir[sid], c, s)
+            t = model.seg_type[sid]
+            base = orr + mcount * RF
+            obs[w, a, base + 0] = loc[0] * inv_rr
+            obs[w, a, base + 1] = loc[1] * inv_rr
+            obs[w, a, base + 2] = dl[0]
+            obs[w, a, base + 3] = dl[1]
+            obs[w, a, base + 4] = model.seg_len[sid] * inv_len
+            lane = float(0.0)
+            if t == ROAD_LANE:
+                lane = 1.0
+            edge = float(0.0)
+            if t == ROAD_EDGE:
+                edge = 1.0
+            obs[w, a, base + 5] = lane
+            obs[w, a, base + 6] = edge
+            obs[w, a, base + 7] = 1.0
+            mcount += 1
+    for k in range(mcount * RF, M * RF):
+        obs[w, a, orr + k] = 0.0
+
+
+__all__ = ["observation_kernel"]

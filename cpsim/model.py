@@ -1,0 +1,474 @@
+"""The static model: everything about a scenario pool that never changes during a run.
+
+Built once in NumPy from a list of :class:`~cpsim.scenario.Scenario` and uploaded to the
+device as one :class:`ModelArrays` Warp struct (Newton / mujoco_warp style: static Model,
+mutable State, Control). A world can be (re)assigned any scenario of the pool by index.
+
+Contents (S road segments, L log rows = all agents of the pool, T = 91):
+
+* road segments of every scenario in one array (after simplifying each polyline to
+  ``road_simplify_tol`` and splitting pieces longer than ``road_max_segment``), with type,
+  source polyline, midpoint, unit direction and length;
+* a uniform grid per scenario (``grid_cell`` metres, enlarged on very large maps so a grid
+  has at most :data:`MAX_CELLS_PER_SCENARIO` cells) with three candidate lists per cell
+  (CSR, global segment ids):
+
+  - ``obs``: the ``num_road`` segments whose midpoints are nearest to the cell centre and
+    within ``road_radius`` + half the cell diagonal, sorted by that distance. An agent
+    keeps those within ``road_radius`` of itself, in list order: its M road segments are
+    the nearest ones up to the cell size (exact ranking is by distance to the cell centre);
+  - ``lane``: every lane segment within ``lane_radius`` of some point of the cell, so the
+    nearest lane within ``lane_radius`` of any point of the cell is exact;
+  - ``edge``: every road-edge segment within reach of any box centred in the cell, including
+    the corner paths of the last step (agent half-diagonal x ``box_scale`` + one step of
+    motion), so the swept off-road test is exact;
+
+* all logged trajectories of the pool (replay) and each agent's compressed logged path
+  (valid points only, cumulative arc length, logged heading; IDM drives along it and
+  beyond its end along the final heading) and IDM desired speed (max logged speed, 0 for
+  agents that move less than 1 m).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import warp as wp
+
+from cpsim.config import SimConfig
+from cpsim.scenario.datatypes import NUM_STEPS, AgentType, RoadType, Scenario, ScenarioError
+
+#: Largest number of grid cells per scenario; larger maps get proportionally larger cells.
+MAX_CELLS_PER_SCENARIO = 40_000
+#: Agents' logged region is extended by this (m) beyond the observation radius before it
+#: clips the grid: roads farther from every logged position cannot matter.
+GRID_REGION_MARGIN = 50.0
+#: Agents moving less than this along their whole log are parked for IDM (desired speed 0).
+IDM_PARKED_PATH_LENGTH = 1.0
+
+
+@wp.struct
+class ModelArrays:
+    """Device view of the static model (see module docstring). Shapes: S segments,
+    C cells (all scenarios), G scenarios, L log rows (agents of the pool), T = 91."""
+
+    seg_a: wp.array(dtype=wp.vec2f)        # (S,) start point, m
+    seg_b: wp.array(dtype=wp.vec2f)        # (S,) end point, m
+    seg_mid: wp.array(dtype=wp.vec2f)      # (S,) midpoint, m
+    seg_dir: wp.array(dtype=wp.vec2f)      # (S,) unit direction a->b
+    seg_len: wp.array(dtype=wp.float32)    # (S,) length, m
+    seg_type: wp.array(dtype=wp.int32)     # (S,) RoadType
+    seg_poly: wp.array(dtype=wp.int32)     # (S,) global polyline id (lane identity)
+    grid_origin: wp.array(dtype=wp.vec2f)  # (G,) lower-left corner of the grid, m
+    grid_dims: wp.array(dtype=wp.vec2i)    # (G,) cells along x and y
+    grid_cell: wp.array(dtype=wp.float32)  # (G,) cell side, m
+    grid_first: wp.array(dtype=wp.int32)   # (G,) global index of the scenario's first cell
+    obs_start: wp.array(dtype=wp.int32)    # (C+1,) CSR offsets into obs_items
+    obs_items: wp.array(dtype=wp.int32)
+    lane_start: wp.array(dtype=wp.int32)   # (C+1,)
+    lane_items: wp.array(dtype=wp.int32)
+    edge_start: wp.array(dtype=wp.int32)   # (C+1,)
+    edge_items: wp.array(dtype=wp.int32)
+    agent_first: wp.array(dtype=wp.int32)  # (G+1,) log rows of scenario g: agent_first[g] ...
+    log_xy: wp.array2d(dtype=wp.vec2f)     # (L, T) m
+    log_heading: wp.array2d(dtype=wp.float32)  # (L, T) rad
+    log_vel: wp.array2d(dtype=wp.vec2f)    # (L, T) m/s
+    log_valid: wp.array2d(dtype=wp.bool)   # (L, T)
+    size: wp.array(dtype=wp.vec2f)         # (L,) logged (length, width), m
+    agent_type: wp.array(dtype=wp.int32)   # (L,) AgentType
+    goal: wp.array(dtype=wp.vec2f)         # (L,) m
+    idm_v0: wp.array(dtype=wp.float32)     # (L,) IDM desired speed, m/s
+    path_xy: wp.array2d(dtype=wp.vec2f)    # (L, T) valid logged points, compressed to the front
+    path_s: wp.array2d(dtype=wp.float32)   # (L, T) cumulative arc length, m
+    path_h: wp.array2d(dtype=wp.float32)   # (L, T) logged heading at the path point, rad
+    path_n: wp.array(dtype=wp.int32)       # (L,) number of path points
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+def simplify_polyline(points: np.ndarray, tol: float, max_len: float) -> np.ndarray:
+    """Indices of the vertices kept when simplifying a polyline.
+
+    Greedy chord simplification: from each kept vertex, jump to the farthest later vertex
+    such that every vertex in between lies within ``tol`` of the chord and the chord is at
+    most ``max_len`` long (the next vertex is always accepted). First and last are kept.
+
+    Args:
+        points: (n, 2) vertices, m.
+    Returns:
+        (k,) int64 increasing indices, k >= min(n, 2).
+    """
+    n = points.shape[0]
+    if n <= 2:
+        return np.arange(n)
+    pts = points.astype(np.float64)
+    window = 64
+    keep = [0]
+    i = 0
+    while i < n - 1:
+        hi = min(n - 1, i + window)
+        cand = pts[i + 1:hi + 1] - pts[i]                       # (k, 2) chords to candidate ends
+        k = cand.shape[0]
+        length = np.linalg.norm(cand, axis=1)
+        inter = cand[:-1]                                        # intermediate points (k-1, 2)
+        # dev[c, m] = distance of intermediate m from chord c (only m < c matters)
+        cross = np.abs(cand[:, None, 0] * inter[None, :, 1] - cand[:, None, 1] * inter[None, :, 0])
+        dev = cross / np.maximum(length, 1e-12)[:, None]
+        mask = np.arange(k - 1)[None, :] < np.arange(k)[:, None]
+        maxdev = np.where(mask, dev, 0.0).max(axis=1) if k > 1 else np.zeros(1)
+        ok = (maxdev <= tol) & (length <= max_len)
+        ok[0] = True
+        bad = np.flatnonzero(~ok)
+        c = (bad[0] - 1) if bad.size else k - 1
+        i = i + 1 + int(c)
+        keep.append(i)
+    return np.asarray(keep)
+
+
+def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from points (C, 2) to segments a-b (S, 2): (C, S) float64, m."""
+    ab = (b - a).astype(np.float64)
+    ab2 = np.maximum((ab * ab).sum(-1), 1e-12)
+    ap = p[:, None, :].astype(np.float64) - a[None, :, :]
+    t = np.clip((ap * ab[None]).sum(-1) / ab2[None], 0.0, 1.0)
+    d = ap - t[..., None] * ab[None]
+    return np.sqrt((d * d).sum(-1))
+
+
+def scenario_segments(sc: Scenario, tol: float, max_len: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Simplified road segments of one scenario.
+
+    Returns:
+        a (S, 2), b (S, 2) float32 endpoints; types (S,) int32; poly (S,) int32 local polyline ids.
+    """
+    a_list, b_list, t_list, p_list = [], [], [], []
+    for r in range(sc.num_roads):
+        pts = sc.road(r).astype(np.float64)
+        if pts.shape[0] == 1:
+            continue  # isolated points (stop signs) carry no segment
+        keep = simplify_polyline(pts, tol, max_len)
+        v = pts[keep]
+        a, b = v[:-1], v[1:]
+        length = np.linalg.norm(b - a, axis=1)
+        nonzero = length > 1e-6
+        a, b, length = a[nonzero], b[nonzero], length[nonzero]
+        if a.shape[0] == 0:
+            continue
+        pieces = np.maximum(1, np.ceil(length / max_len - 1e-9)).astype(np.int64)
+        if np.any(pieces > 1):  # split pieces longer than max_len into equal parts
+            rep = np.repeat(np.arange(a.shape[0]), pieces)
+            start = np.concatenate([[0], np.cumsum(pieces)[:-1]])
+            k = np.arange(rep.size) - np.repeat(start, pieces)
+            f0 = (k / pieces[rep])[:, None]
+            f1 = ((k + 1) / pieces[rep])[:, None]
+            d = (b - a)[rep]
+            a, b = a[rep] + f0 * d, a[rep] + f1 * d
+        a_list.append(a)
+        b_list.append(b)
+        t_list.append(np.full(a.shape[0], int(sc.road_types[r]), np.int32))
+        p_list.append(np.full(a.shape[0], r, np.int32))
+    if not a_list:
+        raise ScenarioError(sc.source, "roads", "no road polyline with two distinct points")
+    return (np.concatenate(a_list).astype(np.float32), np.concatenate(b_list).astype(np.float32),
+            np.concatenate(t_list), np.concatenate(p_list))
+
+
+def _csr_from_lists(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    counts = np.array([r.size for r in rows], np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    items = np.concatenate(rows).astype(np.int32) if rows else np.zeros(0, np.int32)
+    return start, items
+
+
+def _mask_to_rows(mask: np.ndarray) -> list[np.ndarray]:
+    rows_idx, cols = np.nonzero(mask)
+    counts = np.bincount(rows_idx, minlength=mask.shape[0])
+    return np.split(cols, np.cumsum(counts)[:-1])
+
+
+# ----------------------------------------------------------------------------- the model
+@dataclass
+class GridInfo:
+    origin: np.ndarray  # (2,)
+    dims: tuple[int, int]
+    cell: float
+
+
+class Model:
+    """Static model of a scenario pool for one configuration (see module docstring).
+
+    Attributes:
+        scenarios: the pool (list of Scenario).
+        config: the SimConfig it was built for (grid lists depend on radii, M, box_scale).
+        fingerprint: hex digest identifying the pool's content (snapshot compatibility).
+        host: dict of the NumPy arrays uploaded to the device.
+        arrays: the :class:`ModelArrays` Warp struct on ``device``.
+        slot_order: per scenario, agent indices in slot order (ego, other controllable by
+            distance to the ego, remaining agents valid at t0 by distance), untruncated.
+        slot_controllable: per scenario, bool flags aligned with ``slot_order``.
+        max_idm_speed, max_half_diagonal: pool-wide bounds used for grid margins.
+    """
+
+    def __init__(self, scenarios: Sequence[Scenario], config: SimConfig | None = None, device: str = "cpu"):
+        config = config or SimConfig()
+        if isinstance(scenarios, Scenario):
+            scenarios = [scenarios]
+        scenarios = list(scenarios)
+        if not scenarios:
+            raise ValueError("scenarios: the pool is empty")
+        for i, sc in enumerate(scenarios):
+            if not isinstance(sc, Scenario):
+                raise ValueError(f"scenarios[{i}]: expected a cpsim.Scenario, got {type(sc).__name__}")
+        self.scenarios = scenarios
+        self.config = config
+        self.device = str(device)
+        self.fingerprint = self._fingerprint(scenarios)
+        self._build_host()
+        self.arrays = self._upload()
+
+    # ------------------------------------------------------------------ build
+    @staticmethod
+    def _fingerprint(scenarios: Sequence[Scenario]) -> str:
+        h = hashlib.sha1()
+        for sc in scenarios:
+            h.update(sc.id.encode())
+            h.update(str(sc.ego_index).encode())
+            for name, arr in sc.arrays().items():
+                h.update(name.encode())
+                h.update(str(arr.shape).encode())
+                h.update(np.ascontiguousarray(arr).tobytes())
+        return h.hexdigest()
+
+    def _build_host(self) -> None:
+        cfg = self.config
+        scs = self.scenarios
+        G = len(scs)
+        # ---- agents / logs
+        n_agents = np.array([sc.num_agents for sc in scs], np.int64)
+        agent_first = np.concatenate([[0], np.cumsum(n_agents)]).astype(np.int32)
+        log_xy = np.concatenate([sc.log_xy for sc in scs]).astype(np.float32)
+        log_heading = np.concatenate([sc.log_heading for sc in scs]).astype(np.float32)
+        log_vel = np.concatenate([sc.log_velocity for sc in scs]).astype(np.float32)
+        log_valid = np.concatenate([sc.log_valid for sc in scs]).astype(bool)
+        # invalid steps may hold -10000 sentinels; keep them finite and harmless
+        log_xy = np.where(log_valid[..., None], log_xy, 0.0).astype(np.float32)
+        log_heading = np.where(log_valid, log_heading, 0.0).astype(np.float32)
+        log_vel = np.where(log_valid[..., None], log_vel, 0.0).astype(np.float32)
+        sizes = np.concatenate([sc.sizes for sc in scs]).astype(np.float32)
+        types = np.concatenate([sc.agent_types for sc in scs]).astype(np.int32)
+        goals = np.concatenate([sc.goal_xy for sc in scs]).astype(np.float32)
+        path_xy, path_s, path_h, path_n, v0 = self._paths(log_xy, log_heading, log_vel, log_valid)
+        self.max_half_diagonal = float(0.5 * np.sqrt((sizes ** 2).sum(1)).max())
+        speeds = np.linalg.norm(log_vel, axis=-1)
+        self.max_log_speed = float(speeds[log_valid].max()) if log_valid.any() else 0.0
+
+        # ---- slot order per scenario
+        self.slot_order: list[np.ndarray] = []
+        self.slot_controllable: list[np.ndarray] = []
+        for sc in scs:
+            order, ctrl = self._slot_order(sc)
+            self.slot_order.append(order)
+            self.slot_controllable.append(ctrl)
+
+        # ---- roads and grids
+        max_step = cfg.dt * max(self.max_log_speed, 100.0 if cfg.dynamics == "classic" else 20.0) + 0.5
+        edge_margin = self.max_half_diagonal * cfg.box_scale + max_step
+        self.edge_margin = edge_margin
+        seg_a, seg_b, seg_t, seg_p = [], [], [], []
+        grid_origin, grid_dims, grid_cell, grid_first = [], [], [], []
+        obs_rows: list[np.ndarray] = []
+        lane_rows: list[np.ndarray] = []
+        edge_rows: list[np.ndarray] = []
+        seg_offset = 0
+        poly_offset = 0
+        cell_offset = 0
+        for g, sc in enumerate(scs):
+            a, b, t, p = scenario_segments(sc, cfg.road_simplify_tol, cfg.road_max_segment)
+            info = self._grid_info(sc, a, b)
+            nx, ny = info.dims
+            ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
+            # cell id = iy * nx + ix  (row-major over y)
+            centres = info.origin + (np.stack([ix.ravel(), iy.ravel()], 1) + 0.5) * info.cell
+            half_diag = info.cell * np.sqrt(0.5)
+            mids = 0.5 * (a + b)
+            lane_ids = np.flatnonzero(t == RoadType.LANE)
+            edge_ids = np.flatnonzero(t == RoadType.ROAD_EDGE)
+            C = centres.shape[0]
+            chunk = max(1, 2_000_000 // max(a.shape[0], 1))
+            M = cfg.num_road
+            for c0 in range(0, C, chunk):
+                cc = centres[c0:c0 + chunk]
+                # observation candidates: nearest midpoints to the cell centre
+                dm = np.sqrt(((cc[:, None, :] - mids[None]) ** 2).sum(-1))
+                if M > 0:
+                    if dm.shape[1] > M:
+                        part = np.argpartition(dm, M - 1, axis=1)[:, :M]
+                    else:
+                        part = np.broadcast_to(np.arange(dm.shape[1]), dm.shape).copy()
+                    dpart = np.take_along_axis(dm, part, axis=1)
+                    order = np.argsort(dpart, axis=1, kind="stable")
+                    part = np.take_along_axis(part, order, axis=1)
+                    dpart = np.take_along_axis(dpart, order, axis=1)
+                    inside = dpart <= cfg.road_radius + half_diag
+                    for r in range(cc.shape[0]):
+                        obs_rows.append(part[r][inside[r]] + seg_offset)
+                else:
+                    obs_rows.extend(np.zeros(0, np.int64) for _ in range(cc.shape[0]))
+                for ids, radius, rows in ((lane_ids, cfg.lane_radius, lane_rows),
+                                          (edge_ids, edge_margin, edge_rows)):
+                    if ids.size == 0:
+                        rows.extend(np.zeros(0, np.int64) for _ in range(cc.shape[0]))
+                        continue
+                    d = point_segment_distance(cc, a[ids], b[ids])
+                    rows.extend(ids[r] + seg_offset for r in _mask_to_rows(d <= radius + half_diag))
+            seg_a.append(a)
+            seg_b.append(b)
+            seg_t.append(t)
+            seg_p.append(p + poly_offset)
+            grid_origin.append(info.origin)
+            grid_dims.append(info.dims)
+            grid_cell.append(info.cell)
+            grid_first.append(cell_offset)
+            seg_offset += a.shape[0]
+            poly_offset += sc.num_roads
+            cell_offset += C
+
+        a = np.concatenate(seg_a)
+        b = np.concatenate(seg_b)
+        d = (b - a).astype(np.float64)
+        length = np.linalg.norm(d, axis=1)
+        obs_start, obs_items = _csr_from_lists(obs_rows)
+        lane_start, lane_items = _csr_from_lists(lane_rows)
+        edge_start, edge_items = _csr_from_lists(edge_rows)
+        self.host: dict[str, np.ndarray] = {
+            "seg_a": a.astype(np.float32),
+            "seg_b": b.astype(np.float32),
+            "seg_mid": (0.5 * (a + b)).astype(np.float32),
+            "seg_dir": (d / np.maximum(length, 1e-12)[:, None]).astype(np.float32),
+            "seg_len": length.astype(np.float32),
+            "seg_type": np.concatenate(seg_t).astype(np.int32),
+            "seg_poly": np.concatenate(seg_p).astype(np.int32),
+            "grid_origin": np.asarray(grid_origin, np.float32).reshape(G, 2),
+            "grid_dims": np.asarray(grid_dims, np.int32).reshape(G, 2),
+            "grid_cell": np.asarray(grid_cell, np.float32),
+            "grid_first": np.asarray(grid_first, np.int32),
+            "obs_start": obs_start, "obs_items": obs_items,
+            "lane_start": lane_start, "lane_items": lane_items,
+            "edge_start": edge_start, "edge_items": edge_items,
+            "agent_first": agent_first,
+            "log_xy": log_xy, "log_heading": log_heading, "log_vel": log_vel, "log_valid": log_valid,
+            "size": sizes, "agent_type": types, "goal": goals, "idm_v0": v0,
+            "path_xy": path_xy, "path_s": path_s, "path_h": path_h, "path_n": path_n,
+        }
+
+    def _grid_info(self, sc: Scenario, a: np.ndarray, b: np.ndarray) -> GridInfo:
+        cfg = self.config
+        pts = np.concatenate([a, b])
+        lo, hi = pts.min(0).astype(np.float64), pts.max(0).astype(np.float64)
+        valid = sc.log_valid
+        if valid.any():
+            ext = max(cfg.road_radius, cfg.partner_radius) + GRID_REGION_MARGIN
+            apts = np.concatenate([sc.log_xy[valid], sc.goal_xy])
+            alo, ahi = apts.min(0) - ext, apts.max(0) + ext
+            ilo, ihi = np.maximum(lo, alo), np.minimum(hi, ahi)
+            if np.all(ihi > ilo):
+                lo, hi = ilo, ihi
+        # every point within edge/lane reach of a road lies inside the grid
+        pad = max(cfg.lane_radius, self.edge_margin) + cfg.grid_cell
+        lo, hi = lo - pad, hi + pad
+        ext = hi - lo
+        cell = float(cfg.grid_cell)
+        if np.prod(np.ceil(ext / cell)) > MAX_CELLS_PER_SCENARIO:
+            cell = float(np.sqrt(ext[0] * ext[1] / MAX_CELLS_PER_SCENARIO)) * 1.01
+        dims = tuple(int(v) for v in np.maximum(1, np.ceil(ext / cell)))
+        return GridInfo(origin=lo.astype(np.float32), dims=dims, cell=cell)
+
+    @staticmethod
+    def _paths(log_xy: np.ndarray, log_heading: np.ndarray, log_vel: np.ndarray, log_valid: np.ndarray):
+        """Compressed logged paths (valid points first), arc lengths and IDM desired speeds."""
+        L, T = log_valid.shape
+        order = np.argsort(~log_valid, axis=1, kind="stable")  # valid steps first, in time order
+        pxy = np.take_along_axis(log_xy, order[..., None], axis=1)
+        ph = np.take_along_axis(log_heading, order, axis=1)
+        n = log_valid.sum(1).astype(np.int32)
+        k = np.arange(T)[None, :]
+        inside = k < n[:, None]
+        step = np.linalg.norm(np.diff(pxy, axis=1), axis=-1)
+        step = np.where(inside[:, 1:], step, 0.0)
+        s = np.concatenate([np.zeros((L, 1)), np.cumsum(step, axis=1)], axis=1)
+        # pad beyond n with the last point so reads past the end stay finite
+        last = np.maximum(n - 1, 0)
+        pxy = np.where(inside[..., None], pxy, pxy[np.arange(L), last][:, None, :])
+        ph = np.where(inside, ph, ph[np.arange(L), last][:, None])
+        total = s[np.arange(L), last]
+        speed = np.where(log_valid, np.linalg.norm(log_vel, axis=-1), 0.0)
+        v0 = np.where(total >= IDM_PARKED_PATH_LENGTH, speed.max(1), 0.0)
+        return (pxy.astype(np.float32), s.astype(np.float32), ph.astype(np.float32), n,
+                v0.astype(np.float32))
+
+    @staticmethod
+    def _slot_order(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
+        """Agents in slot order: ego, other controllable by distance to the ego, then the
+        remaining agents valid at t0 by distance (an ego invalid at t0 is left out)."""
+        valid0 = sc.log_valid[:, 0]
+        ctrl = sc.controllable
+        ego = sc.ego_index
+        ref = sc.log_xy[ego, 0] if valid0[ego] else sc.log_xy[np.argmax(valid0), 0]
+        dist = np.linalg.norm(sc.log_xy[:, 0] - ref, axis=1)
+        idx = np.arange(sc.num_agents)
+        others = idx[valid0 & (idx != ego)]
+        key_ctrl = ~ctrl[others]  # controllable first
+        others = others[np.lexsort((others, dist[others], key_ctrl))]
+        order = np.concatenate([[ego] if valid0[ego] else [], others]).astype(np.int32)
+        return order, ctrl[order]
+
+    def _upload(self) -> ModelArrays:
+        h = self.host
+        dev = self.device
+        m = ModelArrays()
+        vec2 = {"seg_a", "seg_b", "seg_mid", "seg_dir", "grid_origin", "log_xy", "log_vel", "size",
+                "goal", "path_xy"}
+        for name, arr in h.items():
+            if name in vec2:
+                value = wp.array(arr, dtype=wp.vec2f, device=dev)
+            elif name == "grid_dims":
+                value = wp.array(arr, dtype=wp.vec2i, device=dev)
+            elif arr.dtype == np.bool_:
+                value = wp.array(arr, dtype=wp.bool, device=dev)
+            elif arr.dtype == np.int32:
+                value = wp.array(arr, dtype=wp.int32, device=dev)
+            else:
+                value = wp.array(arr.astype(np.float32), dtype=wp.float32, device=dev)
+            setattr(m, name, value)
+        return m
+
+    # ------------------------------------------------------------------ info
+    @property
+    def num_scenarios(self) -> int:
+        return len(self.scenarios)
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.host["seg_a"].shape[0])
+
+    def compatible(self, other: "Model") -> bool:
+        return self.fingerprint == other.fingerprint and self.config == other.config
+
+    def summary(self) -> dict[str, float]:
+        h = self.host
+        cells = int(h["obs_start"].size - 1)
+        return {
+            "scenarios": self.num_scenarios,
+            "segments": self.num_segments,
+            "cells": cells,
+            "obs_items_per_cell": float(h["obs_items"].size / max(cells, 1)),
+            "lane_items_per_cell": float(h["lane_items"].size / max(cells, 1)),
+            "edge_items_per_cell": float(h["edge_items"].size / max(cells, 1)),
+            "log_rows": int(h["size"].shape[0]),
+        }
+
+
+__all__ = ["Model", "ModelArrays", "simplify_polyline", "point_segment_distance", "scenario_segments",
+           "MAX_CELLS_PER_SCENARIO"]

@@ -1,0 +1,442 @@
+"""The batched simulator: W worlds x A agent slots stepped together by Warp kernels.
+
+See ``docs/ARCHITECTURE.md`` (Simulator) for the public contract. Layout of a step:
+
+1. ``idm_kernel`` (only when some agent is on IDM): IDM accelerations from current poses;
+2. ``dynamics_kernel``: every controller moves its agent (policy actions, log replay, IDM,
+   static); replayed agents whose log ends vanish;
+3. ``events_kernel``: collisions, off-road, goal, lanes, outcome, metrics, reward, removal,
+   timeout;
+4. ``finish_kernel``: step counter, ``world_done``;
+5. ``observation_kernel``: the next observation.
+
+Outputs are torch tensors that are zero-copy views of the Warp state (torch is imported
+here only, never in kernels); they are overwritten by the next ``step`` / ``reset``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+import warp as wp
+
+from cpsim import kernels as K
+from cpsim.conditions import NUM_CONDITION_FIELDS, sample_conditions, validate_conditions
+from cpsim.config import CONTROLLER_NAMES, Controller, SimConfig
+from cpsim.kernels.common import make_params
+from cpsim.model import Model
+from cpsim.observation import ObsLayout
+from cpsim.scenario.datatypes import Scenario
+from cpsim.state import (METRIC_FIELDS, REWARD_TERMS, Control, State, allocate_state, state_field_names,
+                         state_to_numpy)
+
+
+@dataclass
+class Snapshot:
+    """Copies of the full state of some worlds, on the simulator's device.
+
+    Attributes:
+        state: a :class:`State` whose world axis has ``num_worlds`` rows.
+        num_worlds: number of worlds held.
+        worlds: (num_worlds,) the simulator worlds they were taken from (informative).
+        fingerprint, config, max_agents, device: compatibility keys checked by ``restore``.
+    """
+
+    state: State
+    num_worlds: int
+    worlds: np.ndarray
+    fingerprint: str
+    config: SimConfig
+    max_agents: int
+    device: str
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """NumPy copies of every field (leading axis: snapshot world)."""
+        return state_to_numpy(self.state)
+
+
+def _is_torch(x: Any) -> bool:
+    return isinstance(x, torch.Tensor)
+
+
+class Simulator:
+    """Batched driving simulator (see module docstring and ``docs/ARCHITECTURE.md``).
+
+    Args:
+        scenarios: the pool (a sequence of :class:`cpsim.Scenario`) or a prebuilt :class:`Model`
+            (built for the same config and device).
+        num_worlds: W, worlds stepped together.
+        max_agents: A, agent slots per world (slot 0 = the scenario's ego).
+        config: :class:`SimConfig` or a dict of its fields.
+        device: "cpu" or "cuda[:N]".
+        seed: seed of the NumPy generator used for scenario draws and p_train conditions.
+    """
+
+    def __init__(self, scenarios: Sequence[Scenario] | Model, num_worlds: int, max_agents: int,
+                 config: SimConfig | dict | None = None, device: str = "cpu", seed: int = 0):
+        for name, value in (("num_worlds", num_worlds), ("max_agents", max_agents)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name}: must be a positive integer, got {value!r}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+            raise ValueError(f"seed: must be an integer, got {seed!r}")
+        self.config = config if isinstance(config, SimConfig) else SimConfig.from_dict(config)
+        wp.init()
+        try:
+            wp_device = wp.get_device(device)
+        except Exception as exc:  # unknown or unavailable device
+            raise ValueError(f"device: {device!r} is not available ({exc})") from None
+        self.device = str(wp_device)
+        self._torch_device = wp.device_to_torch(wp_device)
+        K.load(self.device)
+        if isinstance(scenarios, Model):
+            if scenarios.config != self.config or scenarios.device != self.device:
+                raise ValueError("scenarios: the Model was built for another config or device")
+            self.model = scenarios
+        else:
+            self.model = Model(scenarios, self.config, self.device)
+        self.num_worlds = int(num_worlds)
+        self.max_agents = int(max_agents)
+        self.num_actions = self.config.num_actions
+        self.obs_layout = ObsLayout(num_partners=self.config.num_partners, num_road=self.config.num_road)
+        self._params = make_params(self.config, self.obs_layout)
+        self._rng = np.random.default_rng(int(seed))
+        W, A, D = self.num_worlds, self.max_agents, self.obs_layout.size
+        self.state = allocate_state(W, A, self.device)
+        self.control = Control.allocate(W, A, self.device)
+        self._obs = wp.zeros((W, A, D), dtype=wp.float32, device=self.device)
+        kp = max(self.config.num_partners, 1)
+        self._sel_idx = wp.zeros((W, A, kp), dtype=wp.int32, device=self.device)
+        self._sel_d2 = wp.zeros((W, A, kp), dtype=wp.float32, device=self.device)
+        self._all_worlds = wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=self.device)
+        self._build_slot_tables()
+        self._make_views()
+        self._has_idm = False
+        self.reset()
+
+    # ------------------------------------------------------------------ setup
+    def _build_slot_tables(self) -> None:
+        G, A = self.model.num_scenarios, self.max_agents
+        default = int(CONTROLLER_NAMES[self.config.default_controller])
+        other = int(CONTROLLER_NAMES[self.config.other_controller])
+        self._slot_table = np.full((G, A), -1, np.int32)
+        self._ctrl_table = np.full((G, A), int(Controller.NONE), np.int32)
+        for g in range(G):
+            order = self.model.slot_order[g][:A]
+            ctrl = self.model.slot_controllable[g][:A]
+            self._slot_table[g, :order.size] = order
+            self._ctrl_table[g, :order.size] = np.where(ctrl, default, other)
+
+    def _make_views(self) -> None:
+        s = self.state
+        t = wp.to_torch
+        self.obs = t(self._obs)
+        self.reward = t(s.reward)
+        self.alive = t(s.alive)
+        self.done = t(s.done)
+        self.outcome = t(s.outcome)
+        self.terminated = t(s.terminated)
+        self.truncated = t(s.truncated)
+        self.world_done = t(s.world_done)
+        self.step_count = t(s.step_count)
+        self.controllers = t(s.controller)
+        self.conditions = t(s.conditions)
+        self.xy = t(s.pos)
+        self.heading = t(s.heading)
+        self.speed = t(s.speed)
+        self.accel = t(s.accel)
+        self.steer = t(s.steer)
+        self.velocity = t(s.vel)
+        self.agent_index = t(s.agent_index)
+        self.world_scenario = t(s.scenario)
+        self.size = t(s.size)
+        self.goal = t(s.goal)
+        raw, wtd = t(s.reward_raw), t(s.reward_w)
+        self.reward_terms: dict[str, torch.Tensor] = {}
+        for i, name in enumerate(REWARD_TERMS):
+            self.reward_terms[f"raw_{name}"] = raw[..., i]
+            self.reward_terms[f"w_{name}"] = wtd[..., i]
+        self.metrics: dict[str, torch.Tensor] = {name: t(getattr(s, name)) for name in METRIC_FIELDS}
+        self._actions_t = t(self.control.actions)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def policy_mask(self) -> torch.Tensor:
+        """(W, A) bool: alive agents driven by the policy."""
+        return self.alive & (self.controllers == int(Controller.POLICY))
+
+    @property
+    def scenarios(self) -> list[Scenario]:
+        return self.model.scenarios
+
+    @property
+    def num_scenarios(self) -> int:
+        return self.model.num_scenarios
+
+    # ------------------------------------------------------------------ validation helpers
+    def _worlds(self, worlds: Any, argument: str = "worlds", allow_duplicates: bool = False) -> np.ndarray:
+        if worlds is None:
+            return np.arange(self.num_worlds, dtype=np.int32)
+        if _is_torch(worlds):
+            worlds = worlds.detach().cpu().numpy()
+        arr = np.asarray(worlds)
+        if arr.ndim == 0:
+            arr = arr.reshape(1)
+        if arr.ndim != 1:
+            raise ValueError(f"{argument}: expected a 1-D array of world indices, got shape {arr.shape}")
+        if arr.size and not (np.issubdtype(arr.dtype, np.integer)):
+            raise ValueError(f"{argument}: expected integer world indices, got dtype {arr.dtype}")
+        if arr.size and (arr.min() < 0 or arr.max() >= self.num_worlds):
+            raise ValueError(f"{argument}: world index out of range [0, {self.num_worlds})")
+        if not allow_duplicates and np.unique(arr).size != arr.size:
+            raise ValueError(f"{argument}: contains duplicate world indices")
+        return arr.astype(np.int32)
+
+    def _per_world_agents(self, values: np.ndarray, n: int, argument: str, trailing: tuple[int, ...] = ()) -> np.ndarray:
+        """Broadcast values to (n, A, *trailing)."""
+        shape = (n, self.max_agents, *trailing)
+        try:
+            return np.ascontiguousarray(np.broadcast_to(values, shape))
+        except ValueError:
+            raise ValueError(f"{argument}: shape {np.shape(values)} does not broadcast to {shape}") from None
+
+    def _conditions(self, conditions: Any, n: int, argument: str = "conditions") -> np.ndarray:
+        if _is_torch(conditions):
+            conditions = conditions.detach().cpu().numpy()
+        c = validate_conditions(np.asarray(conditions, dtype=np.float32), argument)
+        return self._per_world_agents(c, n, argument, (NUM_CONDITION_FIELDS,)).astype(np.float32)
+
+    def _validate_actions(self, actions: Any) -> torch.Tensor:
+        W, A = self.num_worlds, self.max_agents
+        if _is_torch(actions):
+            t = actions.detach()
+        else:
+            arr = np.asarray(actions)
+            if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
+                raise ValueError(f"actions: expected a numeric array, got dtype {arr.dtype}")
+            t = torch.from_numpy(np.ascontiguousarray(arr))
+        if tuple(t.shape) not in ((W, A), (W * A,)):
+            raise ValueError(f"actions: expected shape ({W}, {A}) or ({W * A},), got {tuple(t.shape)}")
+        if t.dtype == torch.bool or t.is_complex():
+            raise ValueError(f"actions: expected integer action indices, got dtype {t.dtype}")
+        if t.is_floating_point():
+            if not bool(torch.isfinite(t).all()):
+                raise ValueError("actions: contains NaN or infinite values")
+            if not bool((t == torch.round(t)).all()):
+                raise ValueError("actions: floating-point actions must hold integral values")
+        if t.numel():
+            lo, hi = int(t.min()), int(t.max())
+            if lo < 0 or hi >= self.num_actions:
+                raise ValueError(f"actions: values must lie in [0, {self.num_actions}) for "
+                                 f"{self.config.dynamics} dynamics, got range [{lo}, {hi}]")
+        return t.reshape(W, A)
+
+    # ------------------------------------------------------------------ launches
+    def _launch_obs(self, worlds_wp: wp.array, n: int) -> None:
+        if n == 0:
+            return
+        wp.launch(K.observation.observation_kernel, dim=(n, self.max_agents),
+                  inputs=[self.state, self.model.arrays, self._params, worlds_wp, self._obs,
+                          self._sel_idx, self._sel_d2], device=self.device)
+
+    def _world_array(self, worlds: np.ndarray) -> wp.array:
+        return wp.array(worlds.astype(np.int32), dtype=wp.int32, device=self.device)
+
+    def _refresh_has_idm(self) -> None:
+        self._has_idm = bool((self.controllers == int(Controller.IDM)).any())
+
+    # ------------------------------------------------------------------ public API
+    def reset(self, worlds: Any = None, scenario_index: Any = None, conditions: Any = None) -> None:
+        """(Re)start worlds on scenarios of the pool.
+
+        Args:
+            worlds: None (all) or world indices.
+            scenario_index: None (seeded uniform draw from the pool), an int, or one per world.
+            conditions: None (p_train draw per agent), or raw conditions broadcastable to
+                (len(worlds), A, 10).
+        Draw order on the simulator's RNG: scenario indices, then conditions.
+        """
+        w = self._worlds(worlds)
+        n = w.size
+        if n == 0:
+            return
+        G = self.model.num_scenarios
+        if scenario_index is None:
+            scen = None
+        else:
+            if _is_torch(scenario_index):
+                scenario_index = scenario_index.detach().cpu().numpy()
+            s_arr = np.asarray(scenario_index)
+            if not np.issubdtype(s_arr.dtype, np.integer):
+                raise ValueError(f"scenario_index: expected integers, got dtype {s_arr.dtype}")
+            try:
+                scen = np.broadcast_to(s_arr, (n,)).astype(np.int32)
+            except ValueError:
+                raise ValueError(f"scenario_index: shape {s_arr.shape} does not match {n} worlds") from None
+            if scen.min() < 0 or scen.max() >= G:
+                raise ValueError(f"scenario_index: out of range [0, {G})")
+        cond = None if conditions is None else self._conditions(conditions, n)
+        # validated: from here on the state changes
+        if scen is None:
+            scen = self._rng.integers(0, G, size=n).astype(np.int32)
+        if cond is None:
+            cond = sample_conditions(self._rng, (n, self.max_agents))
+        dev = self.device
+        w_wp = self._world_array(w)
+        wp.launch(K.snapshot.reset_kernel, dim=(n, self.max_agents),
+                  inputs=[self.state, self.model.arrays, self._params, w_wp,
+                          wp.array(scen, dtype=wp.int32, device=dev),
+                          wp.array(self._slot_table[scen], dtype=wp.int32, device=dev),
+                          wp.array(self._ctrl_table[scen], dtype=wp.int32, device=dev),
+                          wp.array(cond, dtype=wp.float32, device=dev)], device=dev)
+        self._launch_obs(w_wp, n)
+        self._refresh_has_idm()
+
+    def step(self, actions: Any) -> None:
+        """Advance every world by one decision. ``actions`` (W, A) (or (W*A,)) integer
+        indices, NumPy or torch; only alive POLICY agents read them. Worlds whose episode is
+        over (step_count == episode_steps) do not move; their done flags and rewards read 0."""
+        t = self._validate_actions(actions)
+        self._actions_t.copy_(t)
+        dim = (self.num_worlds, self.max_agents)
+        s, m, p, dev = self.state, self.model.arrays, self._params, self.device
+        if self._has_idm:
+            wp.launch(K.controllers.idm_kernel, dim=dim, inputs=[s, m, p], device=dev)
+        wp.launch(K.dynamics.dynamics_kernel, dim=dim, inputs=[s, m, p, self.control.actions], device=dev)
+        wp.launch(K.metrics.events_kernel, dim=dim, inputs=[s, m, p], device=dev)
+        wp.launch(K.metrics.finish_kernel, dim=self.num_worlds, inputs=[s, p, self._all_worlds, 1], device=dev)
+        self._launch_obs(self._all_worlds, self.num_worlds)
+
+    def set_conditions(self, conditions: Any, worlds: Any = None) -> None:
+        """Set raw conditions, shape broadcastable to (len(worlds), A, 10); refreshes the
+        observation of those worlds (its condition slice)."""
+        w = self._worlds(worlds)
+        cond = self._conditions(conditions, w.size)
+        if w.size == 0:
+            return
+        idx = torch.as_tensor(w.astype(np.int64), device=self._torch_device)
+        self.conditions[idx] = torch.as_tensor(cond, device=self._torch_device)
+        self._launch_obs(self._world_array(w), w.size)
+
+    def set_controllers(self, controllers: Any, worlds: Any = None) -> None:
+        """Set controllers (``Controller`` codes, broadcastable to (len(worlds), A)).
+
+        Empty slots keep NONE whatever is given; occupied slots must get POLICY, REPLAY,
+        IDM or STATIC. Agents switched to IDM continue from the nearest point of their path.
+        """
+        w = self._worlds(worlds)
+        if _is_torch(controllers):
+            controllers = controllers.detach().cpu().numpy()
+        c = np.asarray(controllers)
+        if c.dtype == object or not np.issubdtype(c.dtype, np.integer):
+            raise ValueError(f"controllers: expected integer Controller codes, got dtype {c.dtype}")
+        c = self._per_world_agents(c, w.size, "controllers").astype(np.int32)
+        if c.size and (c.min() < 0 or c.max() > int(Controller.NONE)):
+            raise ValueError(f"controllers: codes must lie in [0, {int(Controller.NONE)}]")
+        if w.size == 0:
+            return
+        idx = torch.as_tensor(w.astype(np.int64), device=self._torch_device)
+        occupied = (self.agent_index[idx] >= 0).cpu().numpy()
+        if np.any(occupied & (c == int(Controller.NONE))):
+            raise ValueError("controllers: NONE is only valid for empty slots")
+        new = np.where(occupied, c, int(Controller.NONE)).astype(np.int32)
+        old = self.controllers[idx].cpu().numpy()
+        attach = (new == int(Controller.IDM)) & (old != int(Controller.IDM))
+        self.controllers[idx] = torch.as_tensor(new, device=self._torch_device)
+        w_wp = self._world_array(w)
+        if attach.any():
+            wp.launch(K.controllers.idm_attach_kernel, dim=(w.size, self.max_agents),
+                      inputs=[self.state, self.model.arrays, w_wp,
+                              wp.array(attach, dtype=wp.bool, device=self.device)], device=self.device)
+        wp.launch(K.metrics.finish_kernel, dim=w.size, inputs=[self.state, self._params, w_wp, 0],
+                  device=self.device)
+        self._refresh_has_idm()
+
+    # ------------------------------------------------------------------ snapshots
+    def snapshot(self, worlds: Any, out: Snapshot | None = None) -> Snapshot:
+        """Copy the full state of ``worlds`` into device storage (``out`` is reused when given
+        and of the same size)."""
+        w = self._worlds(worlds, allow_duplicates=True)
+        n = w.size
+        if n == 0:
+            raise ValueError("worlds: snapshot of zero worlds")
+        if out is not None:
+            self._check_snapshot(out, "out")
+            if out.num_worlds != n:
+                raise ValueError(f"out: holds {out.num_worlds} worlds, {n} requested")
+            snap = out
+            snap.worlds = w.copy()
+        else:
+            snap = Snapshot(state=allocate_state(n, self.max_agents, self.device), num_worlds=n, worlds=w.copy(),
+                            fingerprint=self.model.fingerprint, config=self.config,
+                            max_agents=self.max_agents, device=self.device)
+        wp.launch(K.snapshot.copy_worlds_kernel, dim=(n, self.max_agents),
+                  inputs=[self.state, snap.state, self._world_array(w),
+                          wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=self.device)],
+                  device=self.device)
+        return snap
+
+    def _check_snapshot(self, snapshot: Any, argument: str = "snapshot") -> None:
+        if not isinstance(snapshot, Snapshot):
+            raise ValueError(f"{argument}: expected a cpsim.Snapshot, got {type(snapshot).__name__}")
+        if snapshot.fingerprint != self.model.fingerprint:
+            raise ValueError(f"{argument}: taken on a different scenario pool")
+        if snapshot.config != self.config:
+            raise ValueError(f"{argument}: taken with a different SimConfig")
+        if snapshot.max_agents != self.max_agents:
+            raise ValueError(f"{argument}: max_agents {snapshot.max_agents} != {self.max_agents}")
+        if snapshot.device != self.device:
+            raise ValueError(f"{argument}: lives on {snapshot.device}, simulator on {self.device}")
+
+    def restore(self, snapshot: Snapshot, worlds: Any, source: Any = None) -> None:
+        """Write snapshot worlds back: world ``worlds[i]`` gets snapshot world ``source[i]``
+        (default ``i``; repeat a source index to broadcast one root into many worlds).
+        Works across Simulators built on the same pool, config and max_agents."""
+        self._check_snapshot(snapshot)
+        w = self._worlds(worlds)
+        n = w.size
+        if source is None:
+            if n != snapshot.num_worlds:
+                raise ValueError(f"worlds: {n} given for a snapshot of {snapshot.num_worlds} worlds "
+                                 "(pass source= to map them)")
+            src = np.arange(n, dtype=np.int32)
+        else:
+            if _is_torch(source):
+                source = source.detach().cpu().numpy()
+            src_arr = np.asarray(source)
+            if not np.issubdtype(src_arr.dtype, np.integer):
+                raise ValueError(f"source: expected integers, got dtype {src_arr.dtype}")
+            try:
+                src = np.broadcast_to(src_arr, (n,)).astype(np.int32)
+            except ValueError:
+                raise ValueError(f"source: shape {src_arr.shape} does not match {n} worlds") from None
+            if n and (src.min() < 0 or src.max() >= snapshot.num_worlds):
+                raise ValueError(f"source: index out of range [0, {snapshot.num_worlds})")
+        if n == 0:
+            return
+        w_wp = self._world_array(w)
+        wp.launch(K.snapshot.copy_worlds_kernel, dim=(n, self.max_agents),
+                  inputs=[snapshot.state, self.state,
+                          wp.array(src, dtype=wp.int32, device=self.device), w_wp], device=self.device)
+        self._launch_obs(w_wp, n)
+        self._refresh_has_idm()
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """NumPy copies of the complete state (every State field) and the observation."""
+        d = state_to_numpy(self.state)
+        d["obs"] = self._obs.numpy().copy()
+        return d
+
+    # ------------------------------------------------------------------ convenience
+    def scenario_of(self, world: int) -> Scenario:
+        """The Scenario world ``world`` is running."""
+        return self.model.scenarios[int(self.world_scenario[int(world)])]
+
+    def __repr__(self) -> str:
+        return (f"Simulator(W={self.num_worlds}, A={self.max_agents}, scenarios={self.num_scenarios}, "
+                f"dynamics={self.config.dynamics!r}, device={self.device!r})")
+
+
+__all__ = ["Simulator", "Snapshot", "state_field_names"]

@@ -1,0 +1,144 @@
+"""Mutable simulator state and control, as Warp structs of (W, ...) device arrays.
+
+Everything a future step reads lives in :class:`State` (so a snapshot of a world is a
+copy of its rows of every field). Outputs that are pure functions of the state (the
+observation) live apart and are recomputed after a restore. Units: m, s, rad, m/s, m/s^2.
+
+Shapes: W worlds, A agent slots, NC = 10 condition fields, NT reward terms.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from cpsim.conditions import NUM_CONDITION_FIELDS
+
+#: Reward terms, in the order of the last axis of ``reward_raw`` / ``reward_w``.
+REWARD_TERMS: tuple[str, ...] = (
+    "goal", "collision", "offroad", "comfort", "lane_align", "lane_center", "vel_align",
+    "reverse", "step",
+)
+NUM_REWARD_TERMS = len(REWARD_TERMS)
+
+#: Metric accumulators exposed as ``Simulator.metrics`` (each (W, A)).
+METRIC_FIELDS: tuple[str, ...] = (
+    "steps_alive", "comfort_violations", "aligned_steps", "lateral_offset_sum",
+    "first_collision_step", "collision_partner", "first_offroad_step", "goal_step", "at_fault",
+)
+
+
+@wp.struct
+class State:
+    """Per-world and per-agent state. All arrays have the world as leading axis."""
+
+    # per world (W,)
+    scenario: wp.array(dtype=wp.int32)          # pool index of the world's scenario
+    step_count: wp.array(dtype=wp.int32)        # decisions taken since reset
+    world_done: wp.array(dtype=wp.bool)         # step_count == episode_steps or no POLICY agent alive
+    # per agent (W, A)
+    agent_index: wp.array2d(dtype=wp.int32)     # scenario agent index (-1 empty slot)
+    agent_row: wp.array2d(dtype=wp.int32)       # row in the model's log arrays (-1 empty)
+    controller: wp.array2d(dtype=wp.int32)      # Controller
+    alive: wp.array2d(dtype=wp.bool)            # present and not removed
+    present: wp.array2d(dtype=wp.bool)          # present after dynamics, before events (scratch)
+    finished: wp.array2d(dtype=wp.bool)         # the agent's episode ended (done was emitted)
+    pos: wp.array2d(dtype=wp.vec2f)             # box centre, m
+    heading: wp.array2d(dtype=wp.float32)       # rad
+    vel: wp.array2d(dtype=wp.vec2f)             # world-frame velocity, m/s
+    speed: wp.array2d(dtype=wp.float32)         # signed speed along the heading, m/s
+    accel: wp.array2d(dtype=wp.float32)         # longitudinal acceleration, m/s^2
+    lat_accel: wp.array2d(dtype=wp.float32)     # lateral acceleration, m/s^2
+    jerk: wp.array2d(dtype=wp.float32)          # longitudinal jerk of the last step, m/s^3
+    steer: wp.array2d(dtype=wp.float32)         # steering angle, rad
+    prev_pos: wp.array2d(dtype=wp.vec2f)        # pose before the last step (swept off-road test)
+    prev_heading: wp.array2d(dtype=wp.float32)
+    size: wp.array2d(dtype=wp.vec2f)            # logged (length, width), m
+    agent_type: wp.array2d(dtype=wp.int32)      # AgentType
+    goal: wp.array2d(dtype=wp.vec2f)            # m
+    conditions: wp.array3d(dtype=wp.float32)    # (W, A, 10) raw reward conditions
+    outcome: wp.array2d(dtype=wp.int32)         # Outcome (sticky)
+    done: wp.array2d(dtype=wp.bool)             # the agent's episode ended on the last step
+    terminated: wp.array2d(dtype=wp.bool)
+    truncated: wp.array2d(dtype=wp.bool)
+    reward: wp.array2d(dtype=wp.float32)
+    reward_raw: wp.array3d(dtype=wp.float32)    # (W, A, NT)
+    reward_w: wp.array3d(dtype=wp.float32)      # (W, A, NT)
+    idm_s: wp.array2d(dtype=wp.float32)         # arc position along the logged path, m
+    idm_k: wp.array2d(dtype=wp.int32)           # path segment cursor
+    idm_accel: wp.array2d(dtype=wp.float32)     # IDM command for the next step (scratch)
+    lane_err: wp.array2d(dtype=wp.float32)      # signed heading error to the nearest lane, rad
+    lane_offset: wp.array2d(dtype=wp.float32)   # signed lateral offset (left +), m
+    has_lane: wp.array2d(dtype=wp.bool)         # a lane centreline lies within lane_radius
+    # metrics accumulators (W, A)
+    steps_alive: wp.array2d(dtype=wp.int32)
+    comfort_violations: wp.array2d(dtype=wp.int32)
+    aligned_steps: wp.array2d(dtype=wp.int32)
+    lateral_offset_sum: wp.array2d(dtype=wp.float32)
+    first_collision_step: wp.array2d(dtype=wp.int32)
+    collision_partner: wp.array2d(dtype=wp.int32)
+    first_offroad_step: wp.array2d(dtype=wp.int32)
+    goal_step: wp.array2d(dtype=wp.int32)
+    at_fault: wp.array2d(dtype=wp.bool)
+
+
+#: Field name -> (per-agent trailing shape, warp dtype); per-world fields have agent=False.
+_PER_WORLD = {"scenario": wp.int32, "step_count": wp.int32, "world_done": wp.bool}
+
+
+def state_field_names() -> tuple[str, ...]:
+    """Every field of :class:`State`, in declaration order."""
+    return tuple(State.vars.keys())
+
+
+def _field_spec(name: str) -> tuple[bool, tuple[int, ...], type]:
+    var = State.vars[name]
+    dtype = var.type.dtype
+    ndim = var.type.ndim
+    return name in _PER_WORLD, (ndim,), dtype
+
+
+def allocate_state(num_worlds: int, max_agents: int, device: str) -> State:
+    """Zero-initialised state for W worlds x A slots (empty slots: index -1, controller NONE)."""
+    s = State()
+    W, A = num_worlds, max_agents
+    for name in state_field_names():
+        var = State.vars[name]
+        dtype = var.type.dtype
+        if name in _PER_WORLD:
+            shape: tuple[int, ...] = (W,)
+        elif name == "conditions":
+            shape = (W, A, NUM_CONDITION_FIELDS)
+        elif name in ("reward_raw", "reward_w"):
+            shape = (W, A, NUM_REWARD_TERMS)
+        else:
+            shape = (W, A)
+        setattr(s, name, wp.zeros(shape, dtype=dtype, device=device))
+    s.agent_index.fill_(-1)
+    s.agent_row.fill_(-1)
+    s.controller.fill_(4)  # Controller.NONE
+    for name in ("first_collision_step", "collision_partner", "first_offroad_step", "goal_step"):
+        getattr(s, name).fill_(-1)
+    return s
+
+
+def state_to_numpy(state: State) -> dict[str, np.ndarray]:
+    """Copies of every field as NumPy arrays (vec2 fields get a trailing axis of 2)."""
+    return {name: getattr(state, name).numpy().copy() for name in state_field_names()}
+
+
+@dataclass
+class Control:
+    """Inputs of one step: ``actions`` (W, A) int32 action indices (POLICY agents read them)."""
+
+    actions: wp.array
+
+    @classmethod
+    def allocate(cls, num_worlds: int, max_agents: int, device: str) -> "Control":
+        return cls(actions=wp.zeros((num_worlds, max_agents), dtype=wp.int32, device=device))
+
+
+__all__ = ["State", "Control", "REWARD_TERMS", "NUM_REWARD_TERMS", "METRIC_FIELDS",
+           "allocate_state", "state_to_numpy", "state_field_names"]
