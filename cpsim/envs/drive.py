@@ -18,7 +18,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions
 from cpsim.envs.regimes import TrafficDriver
-from cpsim.envs.selfplay import OUTCOME_NAMES, _np, make_simulator, observation_space_for, resolve_scenarios
+from cpsim.envs.selfplay import (OUTCOME_NAMES, _np, copy_obs, make_simulator, observation_space_for,
+                                 resolve_scenarios)
 
 EGO_SLOT = 0
 _POLICY = 0
@@ -86,7 +87,7 @@ class DriveCore:
 
     def ego_obs(self) -> np.ndarray:
         """(W, D) float32 copy of the egos' observations."""
-        return np.array(_np(self.sim.obs)[:, EGO_SLOT], dtype=np.float32, copy=True)
+        return copy_obs(_np(self.sim.obs)[:, EGO_SLOT], (self.num_worlds, self.obs_layout.size))
 
     def check_actions(self, actions: Any) -> np.ndarray:
         a = np.asarray(actions)
@@ -139,7 +140,7 @@ class DriveCore:
 class DriveEnv(gymnasium.Env):
     """``cpsim/Drive-v0``: drive one ego through a scenario among co-players.
 
-    Observation: Box(-inf, inf, (D,), float32), the ego's ego-frame observation
+    Observation: Box(-100, 100, (D,), float32), the ego's ego-frame observation
     (layout ``env.obs_layout``: ego features, its reward condition, K partners, M road
     segments, normalised to about [-1, 1]). Action: Discrete(12) (jerk dynamics) or
     Discrete(91) (classic). Reward: the ego's conditioned reward. ``terminated`` when the

@@ -86,13 +86,23 @@ def make_simulator(scenarios: list, num_worlds: int, max_agents: int, *, dynamic
                      device=device, seed=int(seed))
 
 
-def observation_space_for(sim: Any) -> spaces.Box:
-    """Box(-inf, inf, (D,), float32) for the simulator's observation vector.
+#: Bound of the observation Box. Features are normalised to about [-1, 1]; the widest
+#: reachable ones (classic dynamics: speed up to 100 m/s / 20, relative velocity / 20, long
+#: trucks' length / 10) stay below 10, so clipping to +-100 (done while copying) only
+#: guards against non-physical values and keeps every observation inside the declared space.
+OBS_BOUND = 100.0
 
-    Features are normalised to about [-1, 1] but not clipped, so the bounds are open.
-    """
+
+def observation_space_for(sim: Any) -> spaces.Box:
+    """Box(-OBS_BOUND, OBS_BOUND, (D,), float32) for the simulator's observation vector."""
     d = int(sim.obs_layout.size)
-    return spaces.Box(low=-np.inf, high=np.inf, shape=(d,), dtype=np.float32)
+    return spaces.Box(low=-OBS_BOUND, high=OBS_BOUND, shape=(d,), dtype=np.float32)
+
+
+def copy_obs(view: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """Fresh float32 array of ``shape`` from a simulator view, clipped to +-OBS_BOUND (one pass)."""
+    src = _np(view).reshape(shape)
+    return np.clip(src, -OBS_BOUND, OBS_BOUND, out=np.empty(shape, np.float32))
 
 
 class SelfPlayVecEnv(VecEnv):
@@ -192,7 +202,7 @@ class SelfPlayVecEnv(VecEnv):
     def _observe(self) -> np.ndarray:
         """(num_envs, D) float32 copy of the observations, zero on inactive slots; updates the mask."""
         self._active = _np(self.sim.policy_mask).reshape(-1).copy()
-        obs = np.array(_np(self.sim.obs).reshape(self.num_envs, self._obs_dim), dtype=np.float32, copy=True)
+        obs = copy_obs(self.sim.obs, (self.num_envs, self._obs_dim))
         obs[~self._active] = 0.0
         return obs
 
@@ -245,7 +255,7 @@ class SelfPlayVecEnv(VecEnv):
         done_idx = np.flatnonzero(ended)
         terminal_obs = truncated = outcome = None
         if done_idx.size:
-            terminal_obs = np.array(_np(self.sim.obs).reshape(n, self._obs_dim)[done_idx], dtype=np.float32)
+            terminal_obs = copy_obs(_np(self.sim.obs).reshape(n, self._obs_dim)[done_idx], (done_idx.size, self._obs_dim))
             truncated = _np(self.sim.truncated).reshape(n)[done_idx] | cut[done_idx]
             outcome = np.where(cut[done_idx], 4, _np(self.sim.outcome).reshape(n)[done_idx])
         if np.any(world_done):
@@ -321,4 +331,4 @@ class SelfPlayVecEnv(VecEnv):
         return [r.render_sim(self.sim, int(w)) for w in worlds]
 
 
-__all__ = ["SelfPlayVecEnv", "OUTCOME_NAMES", "resolve_scenarios", "make_simulator", "observation_space_for"]
+__all__ = ["SelfPlayVecEnv", "OUTCOME_NAMES", "resolve_scenarios", "make_simulator", "observation_space_for", "copy_obs", "OBS_BOUND"]

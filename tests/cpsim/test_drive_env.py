@@ -45,7 +45,9 @@ def test_gymnasium_and_sb3_env_checkers_pass_without_warnings(scenarios):
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        env = make(scenarios, render_mode="rgb_array")
+        # through gymnasium.make so the env has a spec (the checker re-makes it per render mode)
+        env = gymnasium.make("cpsim/Drive-v0", scenarios=scenarios, episode_steps=STEPS, max_agents=6,
+                             render_mode="rgb_array").unwrapped
         gym_check(env, skip_render_check=False)
         sb3_check(make(scenarios), warn=True)
 
