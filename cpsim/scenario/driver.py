@@ -41,7 +41,6 @@ from cpsim.scenario.datatypes import DT, NUM_STEPS
 from cpsim.scenario.geometry_utils import (
     BatchedPolylines,
     cumulative_length,
-    point_segment_distance,
     vertex_headings,
 )
 
@@ -63,6 +62,7 @@ LATERAL_ACCEL = 2.5       # comfortable lateral acceleration in curves, m/s^2
 ENVELOPE_DECEL = 1.5      # deceleration used to anticipate curves and route ends, m/s^2
 END_MARGIN = 1.0          # agents stop with their front this far before the end of their route, m
 _FAR = 1.0e9
+_GRID = 0.5               # arc-length step of the tabulated speed envelope, m
 
 
 # --------------------------------------------------------------------------- reusable pieces
@@ -130,10 +130,8 @@ def lane_conflicts(lanes: list[np.ndarray], lane_mask: np.ndarray | None = None,
     mask = np.ones(num, bool) if lane_mask is None else np.asarray(lane_mask, bool)
     boxes = np.array([[p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()] for p in lanes])
     cum = [cumulative_length(p) for p in lanes]
-    lo, hi = boxes[:, None, :2], boxes[None, :, 2:]
     near = np.all(boxes[:, None, :2] - distance <= boxes[None, :, 2:], axis=-1)
     near &= np.all(boxes[None, :, :2] - distance <= boxes[:, None, 2:], axis=-1)
-    del lo, hi
     rows: list[tuple] = []
     ends = np.array([[p[0, 0], p[0, 1], p[-1, 0], p[-1, 1]] for p in lanes])
     for a, b in zip(*np.nonzero(np.triu(near & mask[:, None] & mask[None, :], k=1))):
@@ -144,12 +142,13 @@ def lane_conflicts(lanes: list[np.ndarray], lane_mask: np.ndarray | None = None,
                        or np.linalg.norm(ends[b, 2:] - ends[a, :2]) < 0.1)
         if consecutive or (same_start and same_end):
             continue
-        close_a = point_segment_distance(pa, pb[:-1], pb[1:]).min(axis=1) < distance
+        # vertex-to-vertex distances (one matrix serves both lanes); the zone is then widened
+        # by one vertex on each side, which covers what a point-to-segment test would add
+        d2 = ((pa[:, None, :] - pb[None, :, :]) ** 2).sum(axis=-1) < distance ** 2
+        close_a = d2.any(axis=1)
         if not close_a.any():
             continue
-        close_b = point_segment_distance(pb, pa[:-1], pa[1:]).min(axis=1) < distance
-        if not close_b.any():
-            continue
+        close_b = d2.any(axis=0)
         ia, ib = np.nonzero(close_a)[0], np.nonzero(close_b)[0]
         # widen by one vertex on each side so the zone covers the true crossing extent
         ea, xa = cum[a][max(ia[0] - 1, 0)], cum[a][min(ia[-1] + 1, len(pa) - 1)]
@@ -224,6 +223,17 @@ class DriveResult:
     routes: BatchedPolylines
     entered: np.ndarray
 
+    def without_absent(self, keep: np.ndarray) -> DriveResult:
+        """The logs of the agents where ``keep`` is True, valid only when every dropped agent
+        never entered (an agent that never appeared influenced nobody, so nothing else changes)."""
+        if np.any(self.entered[~keep] >= 0):
+            raise ValueError("without_absent: a dropped agent entered the scene; drive again instead")
+        idx = np.nonzero(keep)[0]
+        polylines = [self.routes.xy[i, :self.routes.count[i]] for i in idx]
+        return DriveResult(s=self.s[idx], speed=self.speed[idx], valid=self.valid[idx], xy=self.xy[idx],
+                           heading=self.heading[idx], velocity=self.velocity[idx],
+                           routes=BatchedPolylines(polylines), entered=self.entered[idx])
+
 
 def route_polyline(lanes: list[np.ndarray], route: tuple[int, ...]) -> np.ndarray:
     """The lanes of ``route`` concatenated (shared joint vertices kept once), ``(n, 2)``."""
@@ -273,137 +283,115 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     static = plan.static.astype(bool)
     moving = ~static
     envelope = _speed_envelope(routes, plan.desired_speed.astype(np.float64), length)
-
-    # ---- pairwise conflict zones on the routes (first zone along my route per pair)
-    zone_in = np.full((n, n), np.nan)     # my zone entry / exit on my route
-    zone_out = np.full((n, n), np.nan)
-    other_in = np.full((n, n), np.nan)    # the other's zone entry / exit on its route
-    other_out = np.full((n, n), np.nan)
-    kind = np.zeros((n, n), np.int64)
-    my_level = np.zeros((n, n))
-    other_level = np.zeros((n, n))
-    for c in range(conflicts.count):      # per lane pair, vectorised over agent pairs
-        a, b = conflicts.a[c], conflicts.b[c]
-        oa, ob = offset[:, a], offset[:, b]
-        # both lanes on one route means the pair is handled by following on that route
-        ok = ~np.isnan(oa)[:, None] & ~np.isnan(ob)[None, :]
-        ok &= np.isnan(offset[:, b])[:, None] & np.isnan(offset[:, a])[None, :]
-        ok &= moving[:, None] & moving[None, :]
-        cand = oa[:, None] + conflicts.enter_a[c]
-        better = ok & ~(cand >= zone_in)             # NaN-aware "first zone wins"
-        if not better.any():
-            continue
-        zone_in = np.where(better, cand, zone_in)
-        zone_out = np.where(better, oa[:, None] + conflicts.exit_a[c], zone_out)
-        other_in = np.where(better, ob[None, :] + conflicts.enter_b[c], other_in)
-        other_out = np.where(better, ob[None, :] + conflicts.exit_b[c], other_out)
-        kind = np.where(better, conflicts.kind[c], kind)
-        my_level = np.where(better, lane_levels[a], my_level)
-        other_level = np.where(better, lane_levels[b], other_level)
-    np.fill_diagonal(kind, 0)
-    has_zone = kind > 0
-    zone_in, zone_out = np.nan_to_num(zone_in, nan=_FAR), np.nan_to_num(zone_out, nan=_FAR)
-    other_in, other_out = np.nan_to_num(other_in, nan=_FAR), np.nan_to_num(other_out, nan=_FAR)
-    is_cross, is_merge, is_diverge = kind == CROSS, kind == MERGE, kind == DIVERGE
-    higher_level, same_level = other_level > my_level, other_level == my_level
-    lower_index = np.arange(n)[None, :] < np.arange(n)[:, None]     # j < i
+    # the envelope on a uniform arc-length grid: one gather per step instead of a search
+    grid = np.arange(0.0, float(routes.length.max()) + 2.0 * _GRID, _GRID)
+    envelope_grid = routes.interp(envelope, np.broadcast_to(grid, (n, grid.shape[0])))
+    grid_last = grid.shape[0] - 1
+    zones = _pair_zones(offset, moving, conflicts, np.asarray(lane_levels, np.float64))
+    zi, zj = zones["i"], zones["j"]
+    z_in, z_out, o_in, o_out = zones["in"], zones["out"], zones["other_in"], zones["other_out"]
+    is_cross, is_merge, is_diverge = zones["kind"] == CROSS, zones["kind"] == MERGE, zones["kind"] == DIVERGE
+    higher, same = zones["higher"], zones["same"]
+    reverse = zones["reverse"]
+    lower_index = zj < zi
+    half_i, half_j = half[zi], half[zj]
+    half_sum = half_i + half_j
+    gap_i = plan.gap.astype(np.float64)[zi]
+    accel_i = plan.accel.astype(np.float64)[zi]
+    half_sum_nn = half[:, None] + half[None, :]
 
     # ---- state
     s = plan.start_s.astype(np.float64).copy()
     v = np.where(static, 0.0, plan.start_speed.astype(np.float64))
     started = static | (plan.start_step <= 0)
     entered = np.where(started, 0, -1)
-    claim = np.full((n, n), np.iinfo(np.int64).max)
+    claim = np.full(zi.shape[0], float(num_steps + 1))
     v0 = plan.desired_speed.astype(np.float64)
     a_max, b_comf = plan.accel.astype(np.float64), plan.decel.astype(np.float64)
-    headway, gap_time = plan.headway.astype(np.float64), plan.gap.astype(np.float64)
-    sqrt_ab = 2.0 * np.sqrt(a_max * b_comf)
+    headway = plan.headway.astype(np.float64)[:, None]
+    sqrt_ab = (2.0 * np.sqrt(a_max * b_comf))[:, None]
     spawn_xy, _ = routes.at(s)
     route_end = routes.length
+    rows = np.arange(n)
+    lower_nn = rows[None, :] < rows[:, None]
+    not_self = ~np.eye(n, dtype=bool)
+    pair_gap = np.full((n, n), _FAR)
+    pair_lead = np.zeros((n, n))
 
     log_s = np.zeros((n, num_steps))
     log_v = np.zeros((n, num_steps))
     log_valid = np.zeros((n, num_steps), bool)
-    rows = np.arange(n)
     for t in range(num_steps):
         # -- late agents appear once their entry point is clear
         pending = ~started & (plan.start_step <= t)
         if pending.any():
             xy_now, _ = routes.at(s)
-            need = half[:, None] + half[None, :] + MIN_GAP + np.maximum(v, v[:, None]) * 1.0
+            need = half_sum_nn + MIN_GAP + np.maximum(v, v[:, None]) * 1.0
             blocked = (np.linalg.norm(spawn_xy[:, None] - xy_now[None], axis=-1) < need) & started[None, :]
             cand = pending & ~blocked.any(axis=1)
             clash = (np.linalg.norm(spawn_xy[:, None] - spawn_xy[None], axis=-1) < need)
-            clash &= cand[None, :] & lower_index
+            clash &= cand[None, :] & lower_nn
             cand &= ~clash.any(axis=1)
             started = started | cand
             entered = np.where(cand, t, entered)
         log_s[:, t], log_v[:, t], log_valid[:, t] = s, v, started
-
         active = started & moving
-        front, rear = s + half, s - half
-        pair_active = active[:, None] & started[None, :]
-        pair_active[rows, rows] = False
 
         # -- leaders on my route: where is agent j in my route's arc length?
-        k = np.maximum((s[:, None] >= lane_start).sum(axis=1) - 1, 0)
-        cur_lane = route_lanes[rows, k]
+        k = (s[:, None] >= lane_start).sum(axis=1) - 1
         local = s - lane_start[rows, k]
-        proj = offset[:, cur_lane] + local[None, :]
-        follow = pair_active & ~np.isnan(proj) & (np.nan_to_num(proj, nan=-_FAR) > s[:, None])
-        gap_follow = np.where(follow, proj - s[:, None] - half[:, None] - half[None, :], _FAR)
+        proj = offset[:, route_lanes[rows, k]] + local[None, :]              # NaN: not on my route
+        follow = (proj > s[:, None]) & (active[:, None] & started[None, :] & not_self)
+        gap_follow = np.where(follow, proj - s[:, None] - half_sum_nn, _FAR)
 
-        # -- conflict zones
-        zpair = has_zone & pair_active & active[None, :]
-        occ_other = (front[None, :] >= other_in) & (rear[None, :] <= other_out)
-        in_mine = (front[:, None] >= zone_in) & (rear[:, None] <= zone_out)
-        cleared_me = rear[:, None] > zone_out
-        cleared_other = rear[None, :] > other_out
-        dist_me = zone_in - front[:, None]
-        dist_other = other_in - front[None, :]
-        tta_other = np.where(occ_other, 0.0, np.maximum(dist_other, 0.0) / np.maximum(v[None, :], 2.0))
-        tta_me = np.where(in_mine, 0.0, np.maximum(dist_me, 0.0) / np.maximum(v[:, None], 2.0))
-        clear_dist = np.maximum(zone_out - rear[:, None], 0.0)
-        vv = v[:, None]
-        t_exit = (-vv + np.sqrt(vv * vv + 2.0 * a_max[:, None] * clear_dist)) / a_max[:, None]
-        near_me = zpair & ~cleared_me & ((dist_me < np.maximum(8.0, 4.0 * vv)) | in_mine)
-        claim = np.where(near_me, np.minimum(claim, t), claim)
-        claim_other = claim.T
+        # -- conflict zones, one entry per ordered agent pair that has one (flat arrays)
+        s_i, s_j, v_i, v_j = s[zi], s[zj], v[zi], v[zj]
+        front_i, rear_i, front_j, rear_j = s_i + half_i, s_i - half_i, s_j + half_j, s_j - half_j
+        live = active[zi] & active[zj]
+        occupied = (front_j >= o_in) & (rear_j <= o_out)          # the other is inside its zone
+        dist_me = z_in - front_i
+        inside_me = (dist_me <= 0.0) & (rear_i <= z_out)
+        cleared_me, cleared_other = rear_i > z_out, rear_j > o_out
+        floor_i, floor_j = np.maximum(v_i, 2.0), np.maximum(v_j, 2.0)
+        tta_other = np.maximum(o_in - front_j, 0.0) / floor_j     # 0 once its front is in
+        tta_me = np.maximum(dist_me, 0.0) / floor_i
+        t_exit = (np.sqrt(v_i * v_i + 2.0 * accel_i * np.maximum(z_out - rear_i, 0.0)) - v_i) / accel_i
+        near = live & ~cleared_me & (dist_me < np.maximum(8.0, 4.0 * v_i))
+        claim = np.where(near, np.minimum(claim, t), claim)
+        claim_other = claim[reverse]
         other_first = (claim_other < claim) | ((claim_other == claim) & (
             (tta_other < tta_me) | ((tta_other == tta_me) & lower_index)))
-        other_priority = higher_level | (same_level & other_first)
+        priority = higher | (same & other_first)                  # the other has the right of way
         stop_gap = dist_me - STOP_LINE_MARGIN
-        committed = stop_gap < vv * vv / (2.0 * COMMIT_DECEL)
-        relevant = zpair & ~cleared_me & ~in_mine & ~cleared_other
-        yield_cross = relevant & is_cross & (occ_other | (
-            other_priority & ~committed & (tta_other < t_exit + gap_time[:, None])))
-        yield_diverge = relevant & is_diverge & occ_other
-        to_join_me = zone_out - s[:, None]
-        to_join_other = other_out - s[None, :]
-        before_join = (to_join_me > 0) & (to_join_other > 0) & zpair & is_merge
-        approaching = (dist_me < np.maximum(15.0, 3.0 * vv)) | in_mine
-        virtual = before_join & approaching & (to_join_other < to_join_me)
-        gap_virtual = np.where(virtual, to_join_me - to_join_other - half[:, None] - half[None, :], _FAR)
-        tj_me = to_join_me / np.maximum(vv, 2.0)
-        tj_other = to_join_other / np.maximum(v[None, :], 2.0)
-        yield_merge = (before_join & ~virtual & ~in_mine & other_priority & ~committed
-                       & (tj_other < tj_me + gap_time[:, None]))
-        must_stop = yield_cross | yield_diverge | yield_merge
-        gap_stop = np.where(must_stop, stop_gap, _FAR)
+        committed = stop_gap < v_i * v_i / (2.0 * COMMIT_DECEL)
+        relevant = live & ~cleared_me & ~inside_me & ~cleared_other
+        yield_zone = relevant & ((is_cross & (occupied | (priority & ~committed & (tta_other < t_exit + gap_i))))
+                                 | (is_diverge & occupied))
+        # merges: the agent nearer the joining point leads (virtual leader); I yield to an
+        # agent with priority that would reach the joining point within my accepted gap
+        to_join_me, to_join_other = z_out - s_i, o_out - s_j
+        merging = is_merge & live & (to_join_me > 0.0) & (to_join_other > 0.0)
+        virtual = merging & (to_join_other < to_join_me) & (dist_me < np.maximum(15.0, 3.0 * v_i))
+        yield_merge = (merging & ~virtual & ~inside_me & priority & ~committed
+                       & (to_join_other / floor_j < to_join_me / floor_i + gap_i))
+        stop = yield_zone | yield_merge
+        pair_gap[zi, zj] = np.where(stop, stop_gap, np.where(virtual, to_join_me - to_join_other - half_sum, _FAR))
+        pair_lead[zi, zj] = np.where(stop, 0.0, v_j)
 
         # -- IDM against every constraint; the most constraining one wins
-        gaps = np.concatenate([gap_follow, gap_virtual, gap_stop], axis=1)       # (N, 3N)
-        lead_v = np.concatenate([np.broadcast_to(v[None, :], (n, n)), np.broadcast_to(v[None, :], (n, n)),
-                                 np.zeros((n, n))], axis=1)
-        desired_gap = MIN_GAP + np.maximum(0.0, vv * headway[:, None] + vv * (vv - lead_v) / sqrt_ab[:, None])
-        interaction = (desired_gap / np.maximum(gaps, 1e-2)) ** 2
-        v_free = np.minimum(routes.interp(envelope, s), v0)
-        accel = a_max * (1.0 - (v / np.maximum(v_free, 0.1)) ** 4 - interaction.max(axis=1))
-        accel = np.where(gaps.min(axis=1) < 0.05, -EMERGENCY_DECEL, accel)
-        accel = np.clip(accel, -EMERGENCY_DECEL, a_max)
+        # per pair, the nearer of the two constraints (leader on my route, zone/merge) counts
+        vv = v[:, None]
+        nearer_follow = gap_follow < pair_gap
+        gap = np.where(nearer_follow, gap_follow, pair_gap)
+        lead = np.where(nearer_follow, v[None, :], pair_lead)
+        need = MIN_GAP + np.maximum(0.0, vv * headway + vv * (vv - lead) / sqrt_ab)
+        interaction = ((need / np.maximum(gap, 1e-2)) ** 2).max(axis=1)
+        min_gap = gap.min(axis=1)
+        v_free = np.minimum(envelope_grid[rows, np.minimum((s * (1.0 / _GRID)).astype(np.int64), grid_last)], v0)
+        accel = a_max * (1.0 - (v / np.maximum(v_free, 0.1)) ** 4 - interaction)
+        accel = np.maximum(np.minimum(np.where(min_gap < 0.05, -EMERGENCY_DECEL, accel), a_max), -EMERGENCY_DECEL)
         v_new = np.maximum(v + accel * dt, 0.0)
-        ds = 0.5 * (v + v_new) * dt
-        s = np.where(active, np.minimum(s + ds, route_end - half), s)
+        s = np.where(active, np.minimum(s + 0.5 * (v + v_new) * dt, route_end - half), s)
         v = np.where(active, v_new, v)
 
     xy, heading = routes.at(log_s)
@@ -411,3 +399,44 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     velocity = log_v[..., None] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
     return DriveResult(s=log_s, speed=log_v, valid=log_valid, xy=xy, heading=heading,
                        velocity=velocity, routes=routes, entered=entered)
+
+
+def _pair_zones(offset: np.ndarray, moving: np.ndarray, conflicts: LaneConflicts,
+                lane_levels: np.ndarray) -> dict[str, np.ndarray]:
+    """Conflict zone of every ordered pair of moving agents whose routes conflict (the first
+    zone along my route), as flat arrays over those pairs.
+
+    ``offset (N, L)``: arc length where lane l starts on route i (NaN: not on it). Returns
+    ``i, j`` agent indices, ``in, out`` my zone on my route, ``other_in, other_out`` the
+    other's zone on its route (m), ``kind``, ``higher`` / ``same`` (the other's lane level
+    vs mine), ``reverse`` (index of the pair (j, i)).
+    """
+    n = offset.shape[0]
+    best = np.full((n, n), np.inf)
+    pick = np.full((n, n), -1)
+    present = ~np.isnan(offset)
+    for c in range(conflicts.count):      # per lane pair, vectorised over agent pairs
+        a, b = conflicts.a[c], conflicts.b[c]
+        # both lanes on one route means the pair is handled by following on that route
+        ok = (present[:, a] & ~present[:, b])[:, None] & (present[:, b] & ~present[:, a])[None, :]
+        ok &= moving[:, None] & moving[None, :]
+        cand = np.where(ok, offset[:, a][:, None] + conflicts.enter_a[c], np.inf)
+        better = cand < best
+        best = np.where(better, cand, best)
+        pick = np.where(better, c, pick)
+    np.fill_diagonal(pick, -1)
+    # keep a pair only when its reverse has a zone too (always true for symmetric conflicts)
+    has = (pick >= 0) & (pick.T >= 0)
+    zi, zj = np.nonzero(has)
+    c = pick[zi, zj]
+    index = np.full((n, n), -1)
+    index[zi, zj] = np.arange(zi.shape[0])
+    a, b = conflicts.a[c], conflicts.b[c]
+    mine, other = lane_levels[a], lane_levels[b]
+    return {
+        "i": zi, "j": zj,
+        "in": offset[zi, a] + conflicts.enter_a[c], "out": offset[zi, a] + conflicts.exit_a[c],
+        "other_in": offset[zj, b] + conflicts.enter_b[c], "other_out": offset[zj, b] + conflicts.exit_b[c],
+        "kind": conflicts.kind[c], "higher": other > mine, "same": other == mine,
+        "reverse": index[zj, zi],
+    }

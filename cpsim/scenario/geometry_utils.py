@@ -11,7 +11,7 @@ import numpy as np
 
 __all__ = [
     "cumulative_length", "resample", "bezier", "arc", "offset_polyline", "vertex_headings",
-    "point_segment_distance", "point_polyline_distance", "segments_intersect",
+    "point_segment_distance", "min_distance_below", "point_polyline_distance", "segments_intersect",
     "first_intersection", "box_corners", "boxes_overlap", "boxes_cross_segments",
     "BatchedPolylines",
 ]
@@ -99,6 +99,21 @@ def point_segment_distance(points: np.ndarray, seg_a: np.ndarray, seg_b: np.ndar
     t = np.clip(np.einsum("msk,sk->ms", ap, ab) / denom, 0.0, 1.0)
     closest = ap - t[..., None] * ab[None]
     return np.sqrt(np.einsum("msk,msk->ms", closest, closest))
+
+
+def min_distance_below(points: np.ndarray, seg_a: np.ndarray, seg_b: np.ndarray, threshold: float,
+                       chunk: int = 16) -> bool:
+    """Whether any of ``points (M, 2)`` is closer than ``threshold`` (m) to any segment
+    ``seg_a[s] -> seg_b[s]``. Segments are tested in chunks, each only against the points
+    inside its bounding box grown by ``threshold``, which keeps the cost near linear."""
+    for lo in range(0, seg_a.shape[0], chunk):
+        a, b = seg_a[lo:lo + chunk], seg_b[lo:lo + chunk]
+        box_lo = np.minimum(a.min(0), b.min(0)) - threshold
+        box_hi = np.maximum(a.max(0), b.max(0)) + threshold
+        inside = np.all((points > box_lo) & (points < box_hi), axis=1)
+        if inside.any() and point_segment_distance(points[inside], a, b).min() < threshold:
+            return True
+    return False
 
 
 def point_polyline_distance(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:

@@ -64,6 +64,7 @@ from cpsim.scenario.geometry_utils import (
     boxes_overlap,
     cumulative_length,
     first_intersection,
+    min_distance_below,
     offset_polyline,
     point_segment_distance,
     resample,
@@ -140,12 +141,8 @@ class _Net:
         lanes = np.concatenate(self.lanes)
         seg_a = np.concatenate([e[:-1] for e in self.edges])
         seg_b = np.concatenate([e[1:] for e in self.edges])
-        lo, hi = lanes.min(0) - 5.0, lanes.max(0) + 5.0
-        keep = np.all((np.minimum(seg_a, seg_b) < hi) & (np.maximum(seg_a, seg_b) > lo), axis=1)
-        seg_a, seg_b = seg_a[keep], seg_b[keep]
-        for lo_i in range(0, lanes.shape[0], 512):          # bounded memory
-            if point_segment_distance(lanes[lo_i:lo_i + 512], seg_a, seg_b).min() < EDGE_CLEARANCE:
-                return False
+        if min_distance_below(lanes, seg_a, seg_b, EDGE_CLEARANCE):
+            return False
         for r in self.routes:
             for a, b in zip(r[:-1], r[1:]):
                 if np.linalg.norm(self.lanes[a][-1] - self.lanes[b][0]) > 1e-6:
@@ -551,7 +548,7 @@ class _Reject(Exception):
 # =========================================================================== agents
 def _route_conflict(lane_offsets: dict[int, float], other: tuple[int, ...], conflicts: LaneConflicts,
                     own: tuple[int, ...]) -> tuple[float, float] | None:
-    """First conflict zone of a route with another: (entry on own route, entry on other), m."""
+    """First conflict zone of a route with another: (entry, exit) on the own route, m."""
     own_set, other_set = set(own), set(other)
     best = None
     for c in range(conflicts.count):
@@ -559,8 +556,8 @@ def _route_conflict(lane_offsets: dict[int, float], other: tuple[int, ...], conf
         if a in own_set and b in other_set and b not in own_set and a not in other_set:
             enter = lane_offsets[a] + conflicts.enter_a[c]
             if best is None or enter < best[0]:
-                best = (enter, c)
-    return None if best is None else (best[0], float(best[1]))
+                best = (float(enter), float(lane_offsets[a] + conflicts.exit_a[c]))
+    return best
 
 
 class _Placer:
@@ -586,8 +583,11 @@ class _Placer:
         xy = np.array([np.interp(s, c, self.polys[route][:, 0]), np.interp(s, c, self.polys[route][:, 1])])
         return xy, float(np.interp(s, c, self.heads[route]))
 
+    def conflict_zone(self, route: int, other: int) -> tuple[float, float] | None:
+        return _route_conflict(self.offsets[route], self.net.routes[other], self.conflicts, self.net.routes[route])
+
     def conflict_entry(self, route: int, other: int) -> float | None:
-        hit = _route_conflict(self.offsets[route], self.net.routes[other], self.conflicts, self.net.routes[route])
+        hit = self.conflict_zone(route, other)
         return None if hit is None else hit[0]
 
     def draw_size(self, route: int, allow_truck: bool) -> tuple[float, float]:
@@ -633,12 +633,21 @@ class _Placer:
     def place(self, target: int) -> int:
         rng, net = self.rng, self.net
         for xy, heading, lng, wid, lane in net.parked:
-            self.add(-1, 0.0, 0.0, 0, lng, wid, static=True, lane_route=(lane,), xy=xy, heading=heading)
+            poly = net.lanes[lane]
+            seg = int(np.argmin(point_segment_distance(xy[None], poly[:-1], poly[1:])[0]))
+            along = float(np.dot(xy - poly[seg], poly[seg + 1] - poly[seg]) / np.linalg.norm(poly[seg + 1] - poly[seg]))
+            s_lane = float(cumulative_length(poly)[seg]) + along
+            self.add(-1, s_lane, 0.0, 0, lng, wid, static=True, lane_route=(lane,), xy=xy, heading=heading)
         # ego: on an ego route, 6-30 m before its first conflict with any other route
         ego_route = int(net.ego_routes[int(rng.integers(len(net.ego_routes)))])
         others = [r for r in range(len(net.routes)) if r != ego_route]
-        entries = [e for e in (self.conflict_entry(ego_route, r) for r in others) if e is not None]
-        entry = min(entries) if entries else 0.5 * self.cum[ego_route][-1]
+        zones = [z for z in (self.conflict_zone(ego_route, r) for r in others) if z is not None]
+        entry = min(zones)[0] if zones else 0.5 * self.cum[ego_route][-1]
+        # the ego's task runs through all of its conflict zones (e.g. out of the junction)
+        own = net.routes[ego_route]
+        exits = [self.offsets[ego_route][a] + x for a, b, x in
+                 zip(self.conflicts.a, self.conflicts.b, self.conflicts.exit_a) if a in own and b not in own]
+        self.ego_zone_exit = float(max(exits)) if exits else entry
         length, width = self.draw_size(ego_route, allow_truck=False)
         s0 = max(entry - rng.uniform(6.0, 30.0) - 0.5 * length, 0.5 * length + 0.5)
         desired = rng.uniform(*self.spec.speed)
@@ -720,12 +729,25 @@ def log_collisions(xy: np.ndarray, heading: np.ndarray, valid: np.ndarray, sizes
     return np.stack([t[hit], i[p][hit], j[p][hit]], axis=1).astype(np.int64)
 
 
+def _place_parked(result: DriveResult, plan: AgentPlan, parked: list) -> DriveResult:
+    """Parked agents stand where they were placed (beside the lane centre), speed 0."""
+    static = plan.static.astype(bool)
+    if not static.any():
+        return result
+    xy, heading, velocity = result.xy.copy(), result.heading.copy(), result.velocity.copy()
+    xy[static] = np.array([p[0] for p in parked])[:, None, :]
+    heading[static] = ((np.array([p[1] for p in parked]) + np.pi) % (2 * np.pi) - np.pi)[:, None]
+    velocity[static] = 0.0
+    return dataclasses.replace(result, xy=xy, heading=heading, velocity=velocity)
+
+
 def _drive_clean(net: _Net, conflicts: LaneConflicts, plan: AgentPlan, ego: int) -> tuple[AgentPlan, DriveResult, int]:
     """Drive, then drop traffic involved in log collisions (never the ego) until the logs
-    are collision-free; agents whose entry never came are dropped too."""
+    are collision-free; agents whose entry never came are dropped too. Parked agents come
+    first in the plan and are never dropped."""
     levels = np.array(net.levels)
     for _ in range(MAX_AGENTS + 1):
-        result = drive(net.lanes, levels, conflicts, plan)
+        result = _place_parked(drive(net.lanes, levels, conflicts, plan), plan, net.parked)
         drop = result.entered < 0
         hits = log_collisions(result.xy, result.heading, result.valid,
                               np.stack([plan.length, plan.width], axis=1), margin=0.05)
@@ -733,8 +755,8 @@ def _drive_clean(net: _Net, conflicts: LaneConflicts, plan: AgentPlan, ego: int)
             # the first collision only: dropping one agent changes what the others do
             _, i, j = hits[np.argmin(hits[:, 0])]
             victim = j if j != ego and not plan.static[j] else i
-            if victim == ego:
-                victim = j
+            if victim == ego or plan.static[victim]:
+                raise _Reject("the ego or a parked vehicle is in a log collision")
             drop[victim] = True
         if not drop.any():
             return plan, result, ego
@@ -743,6 +765,8 @@ def _drive_clean(net: _Net, conflicts: LaneConflicts, plan: AgentPlan, ego: int)
         keep = ~drop
         ego = int(np.sum(keep[:ego]))
         plan = plan.subset(keep)
+        if hits.shape[0] == 0:            # only agents that never appeared: no need to drive again
+            return plan, result.without_absent(keep), ego
     raise _Reject("could not clean the logs")
 
 
@@ -786,31 +810,24 @@ def _build_once(family: str, seed: int, rng: np.random.Generator, spec: _FamilyS
     n = plan.num_agents
     if n < 2:
         raise _Reject("fewer than two agents")
-    return _assemble(family, seed, rng, net, plan, result, ego)
+    return _assemble(family, seed, rng, net, plan, result, ego, placer.ego_zone_exit)
 
 
 def _assemble(family: str, seed: int, rng: np.random.Generator, net: _Net, plan: AgentPlan,
-              result: DriveResult, ego: int) -> ProceduralScene:
+              result: DriveResult, ego: int, ego_zone_exit: float) -> ProceduralScene:
     n = plan.num_agents
     static = plan.static.astype(bool)
-    valid = result.valid.copy()
-    xy = result.xy.copy()
-    heading = result.heading.copy()
-    velocity = result.velocity.copy()
-    # parked agents stand where they were placed (off the lane centre), speed 0
-    parked_xy = np.array([p[0] for p in net.parked]).reshape(-1, 2)
-    parked_h = np.array([p[1] for p in net.parked])
-    if static.any():
-        xy[static] = parked_xy[:, None, :]
-        heading[static] = ((parked_h + np.pi) % (2 * np.pi) - np.pi)[:, None]
-        velocity[static] = 0.0
-    # goals: where the log ends if the agent moved far enough, else further along the route
+    valid, xy, heading, velocity = result.valid, result.xy, result.heading, result.velocity
+    # goals: where the log ends if the agent moved far enough (10 m; for the ego: past its
+    # first conflict zone), else further along the route (15-35 m from its start)
     first = np.argmax(valid, axis=1)
     s_first = result.s[np.arange(n), first]
     s_last = result.s[:, -1]
-    extra = rng.uniform(15.0, 35.0, n)
-    stop_limit = result.routes.length - 0.5 * plan.length - 1.0
-    goal_s = np.where(s_last - s_first >= 10.0, s_last, np.minimum(s_first + extra, np.maximum(stop_limit, s_last)))
+    far_enough = s_first + 10.0
+    far_enough[ego] = max(far_enough[ego], ego_zone_exit + 5.0)
+    stop_limit = np.maximum(result.routes.length - 0.5 * plan.length - 1.0, s_last)
+    further = np.maximum(s_first + rng.uniform(15.0, 35.0, n), far_enough)
+    goal_s = np.where(s_last >= far_enough, s_last, np.minimum(further, stop_limit))
     goal_xy, _ = result.routes.at(goal_s)
     goal_xy = np.where(static[:, None], xy[:, 0], goal_xy)
     xy = np.where(valid[..., None], xy, INVALID_XY)
