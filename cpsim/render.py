@@ -472,11 +472,13 @@ class TopDownRenderer:
         agent_index = _np(sim.agent_index)[w]
         present = agent_index >= 0
         safe = np.where(present, agent_index, 0)
-        alive = _np(sim.alive)[w]
+        # per-slot box sizes and goals as the simulator holds them (logged sizes otherwise)
+        sizes = _np(sim.size)[w] if hasattr(sim, "size") else scenario.sizes[safe]
+        goals = _np(sim.goal)[w] if hasattr(sim, "goal") else scenario.goal_xy[safe]
         return self.render(
-            scenario, _np(sim.xy)[w], _np(sim.heading)[w], scenario.sizes[safe],
-            controllers=_np(sim.controllers)[w], outcome=_np(sim.outcome)[w], alive=alive,
-            present=present, goal_xy=scenario.goal_xy[safe],
+            scenario, _np(sim.xy)[w], _np(sim.heading)[w], sizes,
+            controllers=_np(sim.controllers)[w], outcome=_np(sim.outcome)[w], alive=_np(sim.alive)[w],
+            present=present, goal_xy=goals,
             ego=ego_slot if present[ego_slot] else None, trail=trail,
         )
 
@@ -631,6 +633,9 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
                     writer.append_data(f)
             finally:
                 writer.close()
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file normal permissions
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -162,6 +162,7 @@ class DriveEnv(gymnasium.Env):
         seed: default seed (``reset(seed=...)`` overrides).
         render_mode: None or "rgb_array".
         camera: "ego" or "scene" (rendering). view_m: ego camera width, m.
+        render_size: (width, height) of rendered frames, pixels.
         max_agents: agent slots simulated (the ego plus the nearest others).
         config / other keywords: ``SimConfig`` and field overrides.
     """
@@ -174,7 +175,8 @@ class DriveEnv(gymnasium.Env):
                  coplayer_model: Any = None, coplayer_condition: str | Sequence[float] | None = None,
                  deterministic_coplayers: bool = True, seed: int | None = None,
                  render_mode: str | None = None, camera: str = "ego", view_m: float = 70.0,
-                 max_agents: int = 32, config: Any = None, device: str = "cpu", **config_overrides: Any):
+                 render_size: tuple[int, int] = (480, 480), max_agents: int = 32, config: Any = None,
+                 device: str = "cpu", **config_overrides: Any):
         super().__init__()
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: "
@@ -193,7 +195,8 @@ class DriveEnv(gymnasium.Env):
         if render_mode is not None:
             from cpsim.render import TopDownRenderer
 
-            self._renderer = TopDownRenderer(width=480, height=480, camera=camera, view_m=view_m)
+            self._renderer = TopDownRenderer(width=render_size[0], height=render_size[1], camera=camera,
+                                             view_m=view_m)
         self._needs_reset = True
 
     @property
@@ -267,7 +270,8 @@ class DriveVectorEnv(VectorEnv):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, *, render_mode: str | None = None, camera: str = "ego",
-                 view_m: float = 70.0, seed: int | None = None, **kwargs: Any):
+                 view_m: float = 70.0, render_size: tuple[int, int] = (320, 320), seed: int | None = None,
+                 **kwargs: Any):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -285,7 +289,8 @@ class DriveVectorEnv(VectorEnv):
         if render_mode is not None:
             from cpsim.render import TopDownRenderer
 
-            self._renderer = TopDownRenderer(width=320, height=320, camera=camera, view_m=view_m)
+            self._renderer = TopDownRenderer(width=render_size[0], height=render_size[1], camera=camera,
+                                             view_m=view_m)
         self._default_seed = seed
         self._autoreset = np.zeros(self.num_envs, bool)
         self._needs_reset = True
