@@ -589,6 +589,8 @@ class CounterPlay(RecurrentPPO):
         """Called when ``learn`` reset the env: fresh activity mask, stale roots dropped."""
         assert self.env is not None
         self._last_active = self._observed_active(self.env, getattr(self.env, "reset_infos", None))
+        if self._branching:
+            self._ensure_branching_state(self.env)
         if self._roots is not None:
             self._roots.invalidate()
         self._requests = []
@@ -636,7 +638,9 @@ class CounterPlay(RecurrentPPO):
         def make(num_worlds: int) -> Any:
             from cpsim.simulator import Simulator
 
-            return Simulator(source.scenarios, num_worlds=int(num_worlds), max_agents=int(source.max_agents),
+            # the main simulator's static Model is shared: no second road grid / pool build
+            pool = getattr(source, "model", None) or source.scenarios
+            return Simulator(pool, num_worlds=int(num_worlds), max_agents=int(source.max_agents),
                              config=source.config, device=str(source.device))
 
         return make

@@ -1,0 +1,164 @@
+"""CounterPlay on the real simulator: replay, searches, budget cap, verification, save/load."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch as th
+
+pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
+
+import cpalgo.counterplay.algorithm as algorithm_module  # noqa: E402
+from cpalgo import CounterPlay  # noqa: E402
+from cpsim import SelfPlayVecEnv  # noqa: E402
+from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
+
+EPISODE = 40
+POLICY = dict(lstm_hidden_size=16, net_arch=[32])
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Tiny networks on a shared 2-core machine: one intra-op thread is ~10x faster."""
+    previous = th.get_num_threads()
+    th.set_num_threads(1)
+    yield
+    th.set_num_threads(previous)
+
+
+def make_env(seed: int = 0) -> SelfPlayVecEnv:
+    return SelfPlayVecEnv(num_worlds=2, max_agents=4, num_scenarios=4, seed=seed,
+                          episode_steps=EPISODE, num_partners=4, num_road=16)
+
+
+def make_model(env, **kw) -> CounterPlay:
+    args = dict(n_steps=EPISODE, batch_size=64, n_epochs=1, seed=0, device="cpu", policy_kwargs=POLICY)
+    args.update(kw)
+    return CounterPlay("MlpLstmPolicy", env, **args)
+
+
+class RecordPositions(BaseCallback):
+    """Keeps xy (W, A, 2) per world decision of the first episode of each world."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.xy: dict[tuple[int, int], np.ndarray] = {}
+
+    def _grab(self) -> None:
+        sim = self.training_env.sim
+        steps = sim.step_count.cpu().numpy()
+        xy = sim.xy.cpu().numpy()
+        for w, t in enumerate(steps.tolist()):
+            self.xy.setdefault((w, t), xy[w].copy())
+
+    def _on_rollout_start(self) -> None:
+        self._grab()
+
+    def _on_step(self) -> bool:
+        self._grab()
+        return True
+
+
+def test_factual_replay_with_main_draws_reproduces_the_rollout():
+    env = make_env()
+    model = make_model(env, max_searches=0)
+    rec = RecordPositions()
+    n = 20
+    _, callback = model._setup_learn(n * env.num_envs, rec)
+    callback.on_training_start(locals(), globals())
+    first_episode = model._roots.episode.copy()
+    assert model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=n)
+    roots = model._roots
+    worlds = np.flatnonzero(roots.episode == first_episode)
+    assert worlds.size, "every world reset during 20 decisions: the test needs a longer episode"
+    w = int(worlds[0])
+    steps, _ = roots.roots_of(w)
+    assert sorted(steps.tolist()) == [0, 5, 10, 15]
+    root = 5
+    result = model.replay_root(w, root)
+    replayed = result.actions[0]  # (T, A), -1 where an agent did not decide
+    recorded = roots.actions[w].T[root:n]  # (n - root, A)
+    deciding = replayed[: n - root] >= 0
+    assert deciding.any()
+    np.testing.assert_array_equal(replayed[: n - root][deciding], recorded[deciding])
+    for t in range(root, n + 1):
+        np.testing.assert_array_equal(result.xy[0, t - root], rec.xy[(w, t)], err_msg=f"decision {t}")
+    # fresh draws instead of the main ones give another trajectory (the check can fail)
+    other = model.replay_root(w, root, main_draws=False)
+    assert not np.array_equal(other.actions[0][: n - root], result.actions[0][: n - root])
+
+
+def test_searches_respect_the_branch_cap_and_are_logged():
+    env = make_env(1)
+    model = make_model(env, branch_cap=3.0, verify=True)
+    model.learn(2 * EPISODE * env.num_envs)
+    b = model.budget
+    assert b.generations == 2
+    for gen in b.history:
+        assert gen["branch"] <= 3.0 * gen["main"]
+    assert b.factual > 0 and b.candidate > 0, "no search ran: no failure with a root in the window"
+    assert b.candidate >= 4 * b.factual  # five candidates per factual branch, similar lengths
+    assert b.total == b.main + b.factual + b.candidate + b.verification
+    logged = model.logger.name_to_value
+    assert "counterplay/searches" in logged or model._n_updates > 0
+
+
+def test_default_cap_skips_searches_it_cannot_afford():
+    env = make_env(1)
+    model = make_model(env, branch_cap=0.01)
+    model.learn(EPISODE * env.num_envs)
+    assert model.budget.branch == 0
+    assert model._gen_stats["failures"] > 0
+    assert model._gen_stats["searches_skipped"] + model._gen_stats["failures_without_root"] == model._gen_stats["failures"]
+
+
+def _force_teachers(monkeypatch, verified: bool) -> None:
+    # a random policy rarely completes a task, so pick the first candidate as the teacher
+    # and decide the verification: what is tested is the pipeline around them
+    monkeypatch.setattr(algorithm_module, "choose_teacher", lambda factual, candidates, selection: 0)
+    monkeypatch.setattr(algorithm_module, "verify", lambda factual, candidate: verified)
+
+
+def test_failed_verification_discards_the_search(monkeypatch):
+    _force_teachers(monkeypatch, verified=False)
+    env = make_env(1)
+    model = make_model(env, branch_cap=3.0)
+    model.learn(EPISODE * env.num_envs)
+    stats = model._gen_stats
+    assert stats["teachers_chosen"] > 0
+    assert stats["verification_failed"] == stats["teachers_chosen"]
+    assert stats["teachers"] == 0 and model.budget.verification > 0
+
+
+def test_verified_teachers_are_distilled(monkeypatch):
+    _force_teachers(monkeypatch, verified=True)
+    env = make_env(1)
+    model = make_model(env, branch_cap=3.0)
+    seen: list[int] = []
+    original = model._prepare_distillation
+
+    def spy():
+        batch = original()
+        if batch is not None:
+            seen.append(batch.num_teachers)
+            # the student sees the deployment condition, the teacher saw the panel profile
+            obs = batch.student_obs.reshape(batch.num_teachers, -1, batch.student_obs.shape[-1])
+            layout = env.obs_layout
+            assert not th.allclose(obs[0, 0, layout.condition], model._teachers[0].obs[0, layout.condition])
+        return batch
+
+    model._prepare_distillation = spy
+    model.learn(EPISODE * env.num_envs)
+    assert seen and seen[0] == model._gen_stats["teachers"] > 0
+    assert np.isfinite(model.logger.name_to_value.get("counterplay/distill_kl", 0.0))
+
+
+def test_save_load_continue_with_branching(tmp_path):
+    env = make_env(2)
+    model = make_model(env, branch_cap=3.0).learn(EPISODE * env.num_envs)
+    model.save(tmp_path / "cp")
+    loaded = CounterPlay.load(tmp_path / "cp.zip", env=env, device="cpu")
+    assert loaded.counterfactual and loaded.branch_cap == 3.0
+    assert loaded.budget.total == model.budget.total
+    loaded.learn(EPISODE * env.num_envs, reset_num_timesteps=False)
+    assert loaded.budget.generations == 2 and loaded.budget.main > model.budget.main
