@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Iterable, Sequence
 
 import gymnasium
@@ -22,6 +23,15 @@ def _np(x: Any) -> np.ndarray:
     if hasattr(x, "detach"):
         return x.detach().cpu().numpy()
     return np.asarray(x)
+
+
+@functools.lru_cache(maxsize=8)
+def _procedural_pool(n: int, seed: int, family: str | None) -> tuple:
+    """Procedural training pool, memoised per process: scenarios are immutable, and vectorised
+    wrappers (DummyVecEnv, rl-zoo3) build many envs on the same pool."""
+    from cpsim.scenario import train_pool
+
+    return tuple(train_pool(n, seed, families=None if family is None else [family]))
 
 
 def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_dir: str | None = None,
@@ -53,14 +63,14 @@ def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_
         if family not in families:
             raise ValueError(f"family: unknown procedural family {family!r}; accepted: {list(families)}")
         n = DEFAULT_POOL_SIZE if num_scenarios is None else int(num_scenarios)
-        out = list(scen_mod.train_pool(n, seed, families=[family]))
+        out = list(_procedural_pool(n, int(seed), family))
     elif womd_dir is not None:
         out = list(scen_mod.load_dir(womd_dir))
         if not out:
             raise ValueError(f"womd_dir: no scenario files in {womd_dir!r}")
     else:
         n = DEFAULT_POOL_SIZE if num_scenarios is None else int(num_scenarios)
-        out = list(scen_mod.train_pool(n, seed))
+        out = list(_procedural_pool(n, int(seed), None))
     if num_scenarios is not None:
         out = out[: int(num_scenarios)]
     return out
