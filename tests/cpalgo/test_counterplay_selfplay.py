@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+
 import numpy as np
 import pytest
 import torch as th
@@ -12,6 +14,7 @@ import cpalgo.counterplay.algorithm as algorithm_module  # noqa: E402
 from cpalgo import CounterPlay  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
+from stable_baselines3.common.logger import configure  # noqa: E402
 
 EPISODE = 40
 POLICY = dict(lstm_hidden_size=16, net_arch=[32])
@@ -88,9 +91,10 @@ def test_factual_replay_with_main_draws_reproduces_the_rollout():
     assert not np.array_equal(other.actions[0][: n - root], result.actions[0][: n - root])
 
 
-def test_searches_respect_the_branch_cap_and_are_logged():
+def test_searches_respect_the_branch_cap_and_are_logged(tmp_path):
     env = make_env(1)
     model = make_model(env, branch_cap=3.0, verify=True)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(2 * EPISODE * env.num_envs)
     b = model.budget
     assert b.generations == 2
@@ -99,8 +103,19 @@ def test_searches_respect_the_branch_cap_and_are_logged():
     assert b.factual > 0 and b.candidate > 0, "no search ran: no failure with a root in the window"
     assert b.candidate >= 4 * b.factual  # five candidates per factual branch, similar lengths
     assert b.total == b.main + b.factual + b.candidate + b.verification
-    logged = model.logger.name_to_value
-    assert "counterplay/searches" in logged or model._n_updates > 0
+    with open(tmp_path / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2
+    for key in ("failures", "searches", "searches_skipped", "admissible", "verified_teachers",
+                "verification_pass_rate", "branch_share", "budget_total", "profile/cautious", "root_depth_mean"):
+        assert f"counterplay/{key}" in rows[0], key
+    searches = sum(float(r["counterplay/searches"]) for r in rows)
+    assert searches > 0
+    assert float(rows[-1]["counterplay/budget_total"]) == b.total
+    depth_columns = [k for k in rows[0] if k.startswith("counterplay/roots_by_depth/")]
+    assert sum(float(r[k] or 0) for r in rows for k in depth_columns) == searches
+    for r in rows:
+        assert float(r["counterplay/branch_share"]) <= 3.0 / 4.0
 
 
 def test_default_cap_skips_searches_it_cannot_afford():

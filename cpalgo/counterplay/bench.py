@@ -1,0 +1,114 @@
+"""Wall time per generation of CounterPlay vs RecurrentPPO at the same n_steps and n_envs.
+
+    python -m cpalgo.counterplay.bench --worlds 4 --agents 8 --n-steps 91 --generations 3
+
+Both algorithms train on the same :class:`cpsim.SelfPlayVecEnv` (procedural training pool,
+conditions from p_train). One warm-up generation is run first (Warp module load, branch
+simulator construction); the timed generations follow. With ``--anchor`` the CounterPlay
+run starts from a saved RecurrentPPO / CounterPlay checkpoint (its policy weights), which
+is where searches find teachers; a fresh policy rarely completes a retry.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.logger import KVWriter, Logger
+
+__all__ = ["run_benchmark", "main"]
+
+
+class _MemoryWriter(KVWriter):
+    """Keeps every dumped row (one per generation)."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, Any]] = []
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, Any], step: int = 0) -> None:
+        self.rows.append(dict(key_values))
+
+    def close(self) -> None:
+        pass
+
+
+def _timed(model: Any, generations: int, n_envs: int, n_steps: int) -> tuple[float, list[dict[str, Any]]]:
+    writer = _MemoryWriter()
+    model.set_logger(Logger(folder=None, output_formats=[writer]))
+    model.learn(n_steps * n_envs)  # warm-up generation
+    writer.rows.clear()
+    start = time.perf_counter()
+    model.learn(generations * n_steps * n_envs, reset_num_timesteps=False)
+    return (time.perf_counter() - start) / generations, writer.rows
+
+
+def run_benchmark(worlds: int = 4, agents: int = 8, n_steps: int = 91, generations: int = 3,
+                  branch_cap: float = 0.5, anchor: str | None = None, seed: int = 0,
+                  hidden: int = 64, threads: int = 1) -> dict[str, Any]:
+    """Time both algorithms; returns a JSON-able summary (seconds per generation, branch
+    share, searches / teachers per generation)."""
+    from sb3_contrib import RecurrentPPO
+
+    from cpalgo.counterplay.algorithm import CounterPlay
+    from cpsim import SelfPlayVecEnv
+
+    th.set_num_threads(threads)
+    common = dict(n_steps=n_steps, batch_size=n_steps * 8, n_epochs=2, seed=seed, device="cpu",
+                  policy_kwargs=dict(lstm_hidden_size=hidden, net_arch=[hidden]))
+    env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
+    ppo = RecurrentPPO("MlpLstmPolicy", env, **common)
+    t_ppo, _ = _timed(ppo, generations, env.num_envs, n_steps)
+
+    env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
+    cp = CounterPlay("MlpLstmPolicy", env, branch_cap=branch_cap, **common)
+    if anchor is not None:
+        cp.set_parameters(anchor, exact_match=False, device="cpu")
+    t_cp, rows = _timed(cp, generations, env.num_envs, n_steps)
+
+    def per_gen(key: str) -> float:
+        vals = [float(r[key]) for r in rows if key in r]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    return {
+        "worlds": worlds, "agents": agents, "n_envs": env.num_envs, "n_steps": n_steps,
+        "generations": generations, "branch_cap": branch_cap, "anchor": anchor, "torch_threads": threads,
+        "recurrent_ppo_s_per_generation": t_ppo,
+        "counterplay_s_per_generation": t_cp,
+        "slowdown": t_cp / t_ppo,
+        "branch_share": per_gen("counterplay/branch_share"),
+        "failures_per_generation": per_gen("counterplay/failures"),
+        "searches_per_generation": per_gen("counterplay/searches"),
+        "admissible_per_generation": per_gen("counterplay/admissible"),
+        "teachers_per_generation": per_gen("counterplay/verified_teachers"),
+        "budget": cp.budget.as_dict(),
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m cpalgo.counterplay.bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--worlds", type=int, default=4)
+    parser.add_argument("--agents", type=int, default=8)
+    parser.add_argument("--n-steps", type=int, default=91)
+    parser.add_argument("--generations", type=int, default=3)
+    parser.add_argument("--branch-cap", type=float, default=0.5)
+    parser.add_argument("--anchor", default=None, help="checkpoint .zip whose policy weights CounterPlay starts from")
+    parser.add_argument("--hidden", type=int, default=64)
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    for name in ("worlds", "agents", "n_steps", "generations", "hidden", "threads"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1")
+    if not args.branch_cap > 0:
+        parser.error("--branch-cap must be > 0")
+    result = run_benchmark(args.worlds, args.agents, args.n_steps, args.generations, args.branch_cap,
+                           args.anchor, args.seed, args.hidden, args.threads)
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
