@@ -310,6 +310,8 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     a_max, b_comf = plan.accel.astype(np.float64), plan.decel.astype(np.float64)
     headway = plan.headway.astype(np.float64)[:, None]
     sqrt_ab = (2.0 * np.sqrt(a_max * b_comf))[:, None]
+    # nobody starts faster than it could still slow down for the curves and the route end
+    v = np.minimum(v, routes.interp(envelope, s))
     spawn_xy, _ = routes.at(s)
     route_end = routes.length
     rows = np.arange(n)
@@ -391,7 +393,11 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
         accel = a_max * (1.0 - (v / np.maximum(v_free, 0.1)) ** 4 - interaction)
         accel = np.maximum(np.minimum(np.where(min_gap < 0.05, -EMERGENCY_DECEL, accel), a_max), -EMERGENCY_DECEL)
         v_new = np.maximum(v + accel * dt, 0.0)
-        s = np.where(active, np.minimum(s + 0.5 * (v + v_new) * dt, route_end - half), s)
+        s_new = s + 0.5 * (v + v_new) * dt
+        # at the very end of the route: stop there, with the speed that covers the distance left
+        at_end = s_new >= route_end - half
+        v_new = np.where(at_end, np.maximum(2.0 * (route_end - half - s) / dt - v, 0.0), v_new)
+        s = np.where(active, np.minimum(s_new, route_end - half), s)
         v = np.where(active, v_new, v)
 
     xy, heading = routes.at(log_s)
