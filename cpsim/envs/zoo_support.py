@@ -45,11 +45,19 @@ def install(exp_manager_cls: Any) -> None:
     exp_manager_cls.read_hyperparameters = read_hyperparameters
 
 
-def _is_zoo_default(config: str, algo: str) -> bool:
-    import rl_zoo3
+def zoo_default_file(algo: str) -> str | None:
+    """rl-zoo3's own hyperparameter file for ``algo`` (found without importing rl-zoo3)."""
+    import importlib.util
 
-    default = os.path.join(os.path.dirname(rl_zoo3.__file__), "hyperparams", f"{algo}.yml")
-    return os.path.abspath(str(config)) == os.path.abspath(default)
+    spec = importlib.util.find_spec("rl_zoo3")
+    if spec is None or spec.origin is None:
+        return None
+    return os.path.join(os.path.dirname(spec.origin), "hyperparams", f"{algo}.yml")
+
+
+def _is_zoo_default(config: str, algo: str) -> bool:
+    default = zoo_default_file(algo)
+    return default is not None and os.path.abspath(str(config)) == os.path.abspath(default)
 
 
 def _zoo_has(config: str, gym_id: str) -> bool:
@@ -71,4 +79,4 @@ def install_if_zoo_loaded() -> bool:
     return True
 
 
-__all__ = ["install", "install_if_zoo_loaded", "hyperparams_file", "HYPERPARAMS_DIR"]
+__all__ = ["install", "install_if_zoo_loaded", "hyperparams_file", "zoo_default_file", "HYPERPARAMS_DIR"]
