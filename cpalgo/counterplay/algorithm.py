@@ -659,7 +659,7 @@ class CounterPlay(RecurrentPPO):
             keep = (1.0 - episode_starts).view(1, -1, 1)  # memory the LSTM will actually use
             pi = (lstm_states.pi[0] * keep, lstm_states.pi[1] * keep)
             vf = (lstm_states.vf[0] * keep, lstm_states.vf[1] * keep)
-            snapshot = sim.snapshot(due)
+            snapshot = sim.snapshot(due, out=self._roots.take_free(due.size))
             conditions = _to_numpy(sim.conditions)[due].astype(np.float32)
             alive = _to_numpy(sim.policy_mask)[due].sum(axis=1)
             self._roots.store(due, step_count[due], snapshot, pi, vf, conditions, alive)

@@ -105,6 +105,9 @@ class RootStore:
         self.vf_h = th.zeros(shape, device=self.device)
         self.vf_c = th.zeros(shape, device=self.device)
         self.snapshots: dict[int, Any] = {}
+        # snapshots no root refers to any more, by number of worlds: reused through
+        # ``Simulator.snapshot(worlds, out=...)`` instead of allocating device storage again
+        self._free: dict[int, list[Any]] = {}
         self._next_snapshot_id = 0
         self.episode = np.zeros(w, np.int64)
         t = self.episode_steps + 1
@@ -217,9 +220,24 @@ class RootStore:
             values=self.values[world, focal, : failure_step + 1].copy(),
         )
 
-    def collect_garbage(self) -> None:
-        """Drop snapshots no ring entry refers to any more (requests hold their own refs)."""
+    def collect_garbage(self, recycle: bool = True) -> None:
+        """Drop snapshots no ring entry refers to any more.
+
+        Call it only when no :class:`SearchRequest` still needs its snapshot (after the
+        generation's searches): with ``recycle`` the dropped snapshots are kept for reuse
+        by :meth:`take_free`.
+        """
         live = set(np.unique(self.snapshot_id[self.snapshot_id >= 0]).tolist())
         for sid in list(self.snapshots):
             if sid not in live:
-                del self.snapshots[sid]
+                snap = self.snapshots.pop(sid)
+                n = getattr(snap, "num_worlds", None)
+                if recycle and isinstance(n, int):
+                    pool = self._free.setdefault(n, [])
+                    if len(pool) < self.ring:  # bounded: never more than one ring's worth
+                        pool.append(snap)
+
+    def take_free(self, num_worlds: int) -> Any | None:
+        """A recycled snapshot holding ``num_worlds`` worlds, or None."""
+        pool = self._free.get(int(num_worlds))
+        return pool.pop() if pool else None

@@ -64,3 +64,20 @@ def test_new_episode_hides_old_roots_and_garbage_collection():
     s.store(np.array([1]), np.array([5]), "d", pi, pi, np.zeros((1, 2, 10)), np.array([2]))
     s.collect_garbage()
     assert sorted(s.snapshots.values()) == ["a", "c", "d"]
+
+
+def test_unreferenced_snapshots_are_recycled_by_size():
+    class Snap:
+        def __init__(self, n):
+            self.num_worlds = n
+
+    s = _store(window_end=5)  # ring of 3
+    pi = _memory(3, 2, np.zeros(3))
+    first = Snap(2)
+    s.store(np.array([0, 1]), np.array([0, 0]), first, pi, pi, np.zeros((2, 2, 10)), np.array([2, 2]))
+    for step in (5, 10, 15):  # overwrite every ring slot of worlds 0 and 1
+        s.store(np.array([0, 1]), np.array([step, step]), Snap(2), pi, pi, np.zeros((2, 2, 10)), np.array([2, 2]))
+    assert s.take_free(2) is None  # nothing collected yet
+    s.collect_garbage()
+    assert s.take_free(1) is None
+    assert s.take_free(2) is first and s.take_free(2) is None

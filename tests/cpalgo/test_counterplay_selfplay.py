@@ -29,13 +29,13 @@ def _one_torch_thread():
     th.set_num_threads(previous)
 
 
-def make_env(seed: int = 0) -> SelfPlayVecEnv:
-    return SelfPlayVecEnv(num_worlds=2, max_agents=4, num_scenarios=4, seed=seed,
+def make_env(seed: int = 0, device: str = "cpu") -> SelfPlayVecEnv:
+    return SelfPlayVecEnv(num_worlds=2, max_agents=4, num_scenarios=4, seed=seed, device=device,
                           episode_steps=EPISODE, num_partners=4, num_road=16)
 
 
-def make_model(env, **kw) -> CounterPlay:
-    args = dict(n_steps=EPISODE, batch_size=64, n_epochs=1, seed=0, device="cpu", policy_kwargs=POLICY)
+def make_model(env, device: str = "cpu", **kw) -> CounterPlay:
+    args = dict(n_steps=EPISODE, batch_size=64, n_epochs=1, seed=0, device=device, policy_kwargs=POLICY)
     args.update(kw)
     return CounterPlay("MlpLstmPolicy", env, **args)
 
@@ -62,9 +62,14 @@ class RecordPositions(BaseCallback):
         return True
 
 
-def test_factual_replay_with_main_draws_reproduces_the_rollout():
-    env = make_env()
-    model = make_model(env, max_searches=0)
+CUDA = pytest.param("cuda", marks=[pytest.mark.cuda,
+                                   pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")])
+
+
+@pytest.mark.parametrize("device", ["cpu", CUDA])
+def test_factual_replay_with_main_draws_reproduces_the_rollout(device):
+    env = make_env(device=device)
+    model = make_model(env, device=device, max_searches=0)
     rec = RecordPositions()
     n = 20
     _, callback = model._setup_learn(n * env.num_envs, rec)
