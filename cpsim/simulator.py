@@ -53,6 +53,12 @@ class Snapshot:
     max_agents: int
     device: str
 
+    def refresh(self, worlds: Any = None) -> None:
+        """Recompute the observation of ``worlds`` from the current state (after editing the
+        state through the output views, e.g. to place agents in tests or tools)."""
+        w = self._worlds(worlds)
+        self._launch_obs(self._world_array(w), w.size)
+
     def state_dict(self) -> dict[str, np.ndarray]:
         """NumPy copies of every field (leading axis: snapshot world)."""
         return state_to_numpy(self.state)
@@ -422,6 +428,12 @@ class Simulator:
                           wp.array(src, dtype=wp.int32, device=self.device), w_wp], device=self.device)
         self._launch_obs(w_wp, n)
         self._refresh_has_idm()
+
+    def refresh(self, worlds: Any = None) -> None:
+        """Recompute the observation of ``worlds`` from the current state (after editing the
+        state through the output views, e.g. to place agents in tests or tools)."""
+        w = self._worlds(worlds)
+        self._launch_obs(self._world_array(w), w.size)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """NumPy copies of the complete state (every State field) and the observation."""
