@@ -172,7 +172,8 @@ class AgentPlan:
     routes: lane-index sequences (each a tuple of ints into the lane list).
     start_s: arc length (m) of the box centre along the route when the agent appears.
     start_speed: speed (m/s) when it appears.
-    start_step: first step at which it may appear (it waits if its entry is blocked).
+    start_step: first step at which it may appear (it waits while an agent on its route is
+        too close to its start point, so late agents should start at the map border).
     static: parked agents: never move, speed 0, valid at every step.
     length, width: box size (m).
     desired_speed: IDM free-road speed (m/s). headway: IDM time headway (s).
@@ -312,7 +313,6 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     sqrt_ab = (2.0 * np.sqrt(a_max * b_comf))[:, None]
     # nobody starts faster than it could still slow down for the curves and the route end
     v = np.minimum(v, routes.interp(envelope, s))
-    spawn_xy, _ = routes.at(s)
     route_end = routes.length
     rows = np.arange(n)
     lower_nn = rows[None, :] < rows[:, None]
@@ -324,25 +324,24 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     log_v = np.zeros((n, num_steps))
     log_valid = np.zeros((n, num_steps), bool)
     for t in range(num_steps):
-        # -- late agents appear once their entry point is clear
+        # -- where is agent j in my route's arc length? (NaN: not on my route)
+        k = (s[:, None] >= lane_start).sum(axis=1) - 1
+        local = s - lane_start[rows, k]
+        proj = offset[:, route_lanes[rows, k]] + local[None, :]
+
+        # -- late agents appear at the start of their route (the map border, where only
+        #    agents of the same entry lane can be) once it is clear
         pending = ~started & (plan.start_step <= t)
         if pending.any():
-            xy_now, _ = routes.at(s)
             need = half_sum_nn + MIN_GAP + np.maximum(v, v[:, None]) * 1.0
-            blocked = (np.linalg.norm(spawn_xy[:, None] - xy_now[None], axis=-1) < need) & started[None, :]
+            blocked = (np.abs(proj - s[:, None]) < need) & started[None, :]
             cand = pending & ~blocked.any(axis=1)
-            clash = (np.linalg.norm(spawn_xy[:, None] - spawn_xy[None], axis=-1) < need)
-            clash &= cand[None, :] & lower_nn
+            clash = (np.abs(proj - s[:, None]) < need) & cand[None, :] & lower_nn
             cand &= ~clash.any(axis=1)
             started = started | cand
             entered = np.where(cand, t, entered)
         log_s[:, t], log_v[:, t], log_valid[:, t] = s, v, started
         active = started & moving
-
-        # -- leaders on my route: where is agent j in my route's arc length?
-        k = (s[:, None] >= lane_start).sum(axis=1) - 1
-        local = s - lane_start[rows, k]
-        proj = offset[:, route_lanes[rows, k]] + local[None, :]              # NaN: not on my route
         follow = (proj > s[:, None]) & (active[:, None] & started[None, :] & not_self)
         gap_follow = np.where(follow, proj - s[:, None] - half_sum_nn, _FAR)
 

@@ -116,6 +116,7 @@ class _Net:
     lines: list[np.ndarray] = dataclasses.field(default_factory=list)
     crosswalks: list[np.ndarray] = dataclasses.field(default_factory=list)
     routes: list[tuple[int, ...]] = dataclasses.field(default_factory=list)
+    border: list[bool] = dataclasses.field(default_factory=list)
     ego_routes: list[int] = dataclasses.field(default_factory=list)
     parked: list[tuple[np.ndarray, float, float, float, int]] = dataclasses.field(default_factory=list)
 
@@ -124,13 +125,16 @@ class _Net:
         self.levels.append(int(level))
         return len(self.lanes) - 1
 
-    def route(self, lanes: tuple[int, ...], ego: bool = False) -> int:
+    def route(self, lanes: tuple[int, ...], ego: bool = False, border: bool = True) -> int:
+        """Add a route; ``border``: it starts at the map border (late agents may enter there)."""
         self.routes.append(tuple(int(x) for x in lanes))
+        self.border.append(bool(border))
         if ego:
             self.ego_routes.append(len(self.routes) - 1)
         return len(self.routes) - 1
 
     def rotate(self, angle: float) -> None:
+        """Turn every polyline by ``angle`` (rad, counter-clockwise) about the origin."""
         rot = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])  # row-vector form
         for group in (self.lanes, self.edges, self.lines, self.crosswalks):
             group[:] = [p @ rot for p in group]
@@ -368,7 +372,7 @@ def _family_roundabout(rng: np.random.Generator, net: _Net) -> None:
                 ring += [ring_at[q], ring_between[q]]
             full = (ins[k], entries[k], *ring, exits[m], outs[m])
             net.route(full, ego=True)
-            net.route((*ring, exits[m], outs[m]))          # traffic already on the ring
+            net.route((*ring, exits[m], outs[m]), border=False)   # traffic already on the ring
     # edges: island, and the outer boundary between consecutive arms
     net.edges.append(arc(centre, r_island, 0.0, 2 * np.pi, EDGE_SPACING))
     half = width + shoulder
@@ -597,7 +601,8 @@ class _Placer:
 
     def fits(self, xy: np.ndarray, heading: float, length: float, width: float, speed: float) -> bool:
         """No overlap at step 0 with already placed agents, boxes inflated by a following gap."""
-        placed = [a for a in self.agents if a["start_step"] == 0]
+        placed = [a for a in self.agents if a["start_step"] == 0
+                  and np.hypot(*(a["xy"] - xy)) < a["length"] + length + 4.0 + 1.2 * (a["speed"] + speed)]
         if not placed:
             return True
         c2 = np.array([a["xy"] for a in placed])
@@ -682,7 +687,7 @@ class _Placer:
             r = int(rng.integers(len(net.routes)))
             length, width = self.draw_size(r, allow_truck=True)
             desired = rng.uniform(*self.spec.speed)
-            if rng.random() < self.spec.late_fraction:
+            if rng.random() < self.spec.late_fraction and net.border[r]:
                 s_r = 0.5 * length + 0.5
                 self.add(r, s_r, rng.uniform(0.6, 1.0) * self.speed_at(r, s_r, desired),
                          int(rng.integers(3, 70)), length, width)
@@ -796,7 +801,9 @@ def build(family: str, seed: int) -> ProceduralScene:
 def _build_once(family: str, seed: int, rng: np.random.Generator, spec: _FamilySpec) -> ProceduralScene:
     net = _Net()
     _BUILDERS[family](rng, net)
-    net.rotate(float(rng.uniform(0.0, 2.0 * np.pi)))
+    # built, checked and driven in the family's own frame (axis-aligned bounding boxes stay
+    # tight there); the finished scene is rotated by this angle
+    angle = float(rng.uniform(0.0, 2.0 * np.pi))
     if not net.check():
         raise _Reject("road edge too close to a lane")
     used = np.zeros(len(net.lanes), bool)
@@ -810,11 +817,11 @@ def _build_once(family: str, seed: int, rng: np.random.Generator, spec: _FamilyS
     n = plan.num_agents
     if n < 2:
         raise _Reject("fewer than two agents")
-    return _assemble(family, seed, rng, net, plan, result, ego, placer.ego_zone_exit)
+    return _assemble(family, seed, rng, net, plan, result, ego, placer.ego_zone_exit, angle)
 
 
 def _assemble(family: str, seed: int, rng: np.random.Generator, net: _Net, plan: AgentPlan,
-              result: DriveResult, ego: int, ego_zone_exit: float) -> ProceduralScene:
+              result: DriveResult, ego: int, ego_zone_exit: float, angle: float) -> ProceduralScene:
     n = plan.num_agents
     static = plan.static.astype(bool)
     valid, xy, heading, velocity = result.valid, result.xy, result.heading, result.velocity
@@ -830,6 +837,11 @@ def _assemble(family: str, seed: int, rng: np.random.Generator, net: _Net, plan:
     goal_s = np.where(s_last >= far_enough, s_last, np.minimum(further, stop_limit))
     goal_xy, _ = result.routes.at(goal_s)
     goal_xy = np.where(static[:, None], xy[:, 0], goal_xy)
+    # rotate the whole scene (row vectors: p @ rot turns p by +angle)
+    rot = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
+    xy, velocity, goal_xy = xy @ rot, velocity @ rot, goal_xy @ rot
+    heading = (heading + angle + np.pi) % (2.0 * np.pi) - np.pi
+    net.rotate(angle)
     xy = np.where(valid[..., None], xy, INVALID_XY)
     heading = np.where(valid, heading, 0.0)
     velocity = np.where(valid[..., None], velocity, 0.0)
