@@ -182,3 +182,30 @@ def test_save_load_continue_with_branching(tmp_path):
     assert loaded.budget.total == model.budget.total
     loaded.learn(EPISODE * env.num_envs, reset_num_timesteps=False)
     assert loaded.budget.generations == 2 and loaded.budget.main > model.budget.main
+
+
+@pytest.mark.parametrize(
+    "ablation",
+    [
+        dict(backtrack="fixed", fixed_depth=10, shared_randomness=False),
+        dict(style_change=False, selection="return", verify=False, distill="ppo"),
+    ],
+)
+def test_ablations_run_end_to_end(monkeypatch, ablation):
+    _force_teachers(monkeypatch, verified=True)
+    env = make_env(1)
+    model = make_model(env, branch_cap=3.0, **ablation)
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    model.learn(EPISODE * env.num_envs)
+    stats = model._gen_stats
+    assert stats["searches"] > 0 and model.budget.candidate > 0
+    if ablation.get("verify") is False:
+        assert model.budget.verification == 0
+    else:
+        assert model.budget.verification > 0
+    if ablation.get("backtrack") == "fixed":
+        depths = [int(k[len("root_depth_"):]) for k in stats if k[len("root_depth_"):].isdigit()]
+        assert depths and all(abs(d - 10) <= 2 for d in depths)  # roots every 5 decisions
+    assert stats["teachers"] > 0
+    after = model.policy.state_dict()
+    assert not all(th.equal(before[k], after[k]) for k in before)
