@@ -307,13 +307,15 @@ class EvalResult:
         label: policy name (table row); results sharing a label are checkpoints of one policy.
         checkpoint: path or description.
         columns: per task-regime arrays (n,): ``split``, ``regime``, ``scenario_id`` (str);
-            ``task``, ``ego``, ``steps_alive``, ``goal_step`` (-1: none), ``co_player_harm``,
-            ``outcome_class`` (int); ``goal``, ``at_fault_collision``,
+            ``task``, ``ego``, ``steps_alive``, ``goal_step`` and ``collision_step`` (step
+            count at the event, -1: none), ``collision_partner`` (slot, -1: none),
+            ``co_player_harm``, ``outcome_class`` (int); ``goal``, ``at_fault_collision``,
             ``non_at_fault_collision``, ``offroad``, ``timeout`` (bool); ``comfort``,
             ``lane_align``, ``lane_center`` ([0, 1]) and ``score`` (0-100) (float).
-        trajectories: row -> recorded episode (``xy`` (A, T, 2), ``heading`` (A, T),
-            ``alive`` (A, T), ``sizes`` (A, 2), ``outcome`` (A,), ``goal_xy`` (2,)) for
-            the rows asked for with ``record``.
+        trajectories: row -> recorded episode (``xy`` (A, T+1, 2) m, ``heading`` (A, T+1)
+            rad, ``speed`` (A, T+1) m/s, ``alive`` (A, T+1); index k = state after k steps;
+            ``sizes`` (A, 2), ``outcome`` (A,) simulator codes, ``goal_xy`` (2,) the ego's
+            goal) for the rows asked for with ``record``.
         meta: run settings (deploy condition, timings, ...).
     """
 
@@ -552,7 +554,7 @@ class Evaluator:
         ego.reset(W)
         episode_start = np.ones(W, bool)
         keep = [i for i, r in enumerate(world_rows[:k]) if int(r) in record]
-        rec: dict[str, list[np.ndarray]] = {"xy": [], "heading": [], "alive": []}
+        rec: dict[str, list[np.ndarray]] = {"xy": [], "heading": [], "alive": [], "speed": []}
         horizon = int(sim.config.episode_steps)
         actions = np.zeros((W, A), np.int64)
         steps = 0
@@ -582,6 +584,7 @@ class Evaluator:
                     "xy": np.stack([x[j] for x in rec["xy"]], 1),
                     "heading": np.stack([x[j] for x in rec["heading"]], 1),
                     "alive": np.stack([x[j] for x in rec["alive"]], 1),
+                    "speed": np.stack([x[j] for x in rec["speed"]], 1),
                     "sizes": sizes[j], "goal_xy": goal[j], "outcome": outcome[w].copy(),
                 }
         return steps, traj
@@ -591,6 +594,7 @@ class Evaluator:
         rec["xy"].append(_np(sim.xy)[worlds].copy())
         rec["heading"].append(_np(sim.heading)[worlds].copy())
         rec["alive"].append(_np(sim.alive)[worlds].copy())
+        rec["speed"].append(_np(sim.speed)[worlds].copy())
 
     def _slot_sizes_goals(self, worlds: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """(len(worlds), A, 2) box sizes of each slot and (len(worlds), 2) ego goals."""
@@ -609,13 +613,14 @@ class Evaluator:
         """Read the ego's outcome and metric accumulators of the chunk into ``out[rows]``."""
         sim = self.sim
         k = rows.size
-        outcome = _np(sim.outcome)[:k]
         met = {name: _np(v)[:k] for name, v in sim.metrics.items()}
-        ego_out = outcome[:, 0]
-        goal = ego_out == _GOAL
-        collision = ego_out == _COLLISION
-        offroad = ego_out == _OFFROAD
-        timeout = (ego_out == _TIMEOUT) | (ego_out == _RUNNING)
+        # Events from the accumulators rather than the sticky outcome: an ego that is not
+        # removed by its first event (a replayed expert) may reach its goal and collide
+        # later; the score and the outcome class must see both.
+        goal = met["goal_step"][:, 0] >= 0
+        collision = met["first_collision_step"][:, 0] >= 0
+        offroad = met["first_offroad_step"][:, 0] >= 0
+        timeout = ~(goal | collision | offroad)
         fault = collision & met["at_fault"][:, 0].astype(bool)
         acc = M.metrics_from_accumulators(met["steps_alive"][:, 0], met["comfort_violations"][:, 0],
                                           met["aligned_steps"][:, 0], met["lateral_offset_sum"][:, 0])
@@ -638,6 +643,8 @@ class Evaluator:
         out["co_player_harm"][rows] = (harmed & vehicle).sum(1)
         out["steps_alive"][rows] = met["steps_alive"][:, 0]
         out["goal_step"][rows] = met["goal_step"][:, 0]
+        out["collision_step"][rows] = met["first_collision_step"][:, 0]
+        out["collision_partner"][rows] = met["collision_partner"][:, 0]
         out["outcome_class"][rows] = M.outcome_class(goal, fault, collision & ~fault, offroad)
 
 
@@ -648,6 +655,7 @@ def _empty_columns(n: int) -> dict[str, np.ndarray]:
         "timeout": np.zeros(n, bool), "comfort": np.zeros(n), "lane_align": np.zeros(n),
         "lane_center": np.zeros(n), "score": np.zeros(n), "co_player_harm": np.zeros(n, np.int64),
         "steps_alive": np.zeros(n, np.int64), "goal_step": np.full(n, -1, np.int64),
+        "collision_step": np.full(n, -1, np.int64), "collision_partner": np.full(n, -1, np.int64),
         "outcome_class": np.zeros(n, np.int8),
     }
 
