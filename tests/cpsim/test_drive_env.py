@@ -14,6 +14,17 @@ from cpsim.scenario import generate
 STEPS = 15
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_torch_thread():
+    """Tiny networks: one torch thread is faster than two on a shared 2-core machine."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="module")
 def scenarios():
     return [generate("intersection", 2), generate("t_junction", 3)]
@@ -142,15 +153,16 @@ def test_short_learn(scenarios, algo):
 
     cls = getattr(stable_baselines3, algo, None) or getattr(sb3_contrib, algo)
     env = make(scenarios)
-    kw = dict(seed=0, device="cpu")
+    # small networks: the test checks the plumbing, torch on 2 shared cores is the slow part
+    kw = dict(seed=0, device="cpu", policy_kwargs=dict(net_arch=[16]))
     if algo == "PPO":
-        kw.update(n_steps=64, batch_size=32, n_epochs=1)
+        kw.update(n_steps=64, batch_size=64, n_epochs=1)
     elif algo == "A2C":
-        kw.update(n_steps=8)
+        kw.update(n_steps=32)
     elif algo == "DQN":
-        kw.update(learning_starts=32, buffer_size=500, train_freq=4)
+        kw.update(learning_starts=32, buffer_size=500, train_freq=8)
     else:
-        kw.update(n_steps=64, batch_size=32, n_epochs=1, policy_kwargs=dict(lstm_hidden_size=16, net_arch=[16]))
+        kw.update(n_steps=64, batch_size=64, n_epochs=1, policy_kwargs=dict(lstm_hidden_size=16, net_arch=[16]))
     policy = "MlpLstmPolicy" if algo == "RecurrentPPO" else "MlpPolicy"
     model = cls(policy, env, **kw)
     model.learn(total_timesteps=128)

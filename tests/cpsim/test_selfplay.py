@@ -8,6 +8,17 @@ import pytest
 from cpsim.scenario import generate
 
 W, A = 2, 6
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_torch_thread():
+    """Tiny networks: one torch thread is faster than two on a shared 2-core machine."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 STEPS = 12  # short episodes keep the tests fast
 
 
@@ -159,14 +170,15 @@ def test_ppo_and_recurrent_ppo_learn_under_wrappers(env):
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
     wrapped = VecNormalize(VecMonitor(env), norm_reward=True)
-    model = PPO("MlpPolicy", wrapped, n_steps=16, batch_size=48, n_epochs=1, seed=0, device="cpu")
+    model = PPO("MlpPolicy", wrapped, n_steps=16, batch_size=96, n_epochs=1, seed=0, device="cpu",
+                policy_kwargs=dict(net_arch=[32]))
     model.learn(total_timesteps=2 * 16 * env.num_envs)
     assert model.num_timesteps >= 2 * 16 * env.num_envs
     ep_info = list(model.ep_info_buffer)
     assert ep_info and all(np.isfinite(e["r"]) for e in ep_info)
 
-    rmodel = RecurrentPPO("MlpLstmPolicy", env, n_steps=16, batch_size=48, n_epochs=1, seed=0, device="cpu",
-                          policy_kwargs=dict(lstm_hidden_size=32, net_arch=[32]))
+    rmodel = RecurrentPPO("MlpLstmPolicy", env, n_steps=16, batch_size=96, n_epochs=1, seed=0, device="cpu",
+                          policy_kwargs=dict(lstm_hidden_size=16, net_arch=[16]))
     rmodel.learn(total_timesteps=16 * env.num_envs)
     assert rmodel.num_timesteps >= 16 * env.num_envs
 
@@ -179,3 +191,25 @@ def test_render_tiles_worlds(scenarios):
     img = e.render()
     assert img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 5
+
+
+def _cuda_ready() -> bool:
+    import torch
+    import warp as wp
+
+    wp.init()
+    return torch.cuda.is_available() and wp.get_cuda_device_count() > 0
+
+
+@pytest.mark.cuda
+def test_cuda_vecenv_returns_host_copies(scenarios):
+    if not _cuda_ready():
+        pytest.skip("needs a CUDA device (Warp and torch)")
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    e = SelfPlayVecEnv(scenarios, num_worlds=2, max_agents=4, device="cuda", episode_steps=STEPS)
+    obs = e.reset()
+    assert isinstance(obs, np.ndarray) and obs.dtype == np.float32
+    obs2, rew, done, infos = e.step(np.full(e.num_envs, 7))
+    assert isinstance(rew, np.ndarray) and rew.dtype == np.float32 and done.dtype == bool
+    np.testing.assert_array_equal(e.active_mask(), e.sim.policy_mask.cpu().numpy().reshape(-1))
