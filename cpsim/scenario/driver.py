@@ -45,7 +45,7 @@ from cpsim.scenario.geometry_utils import (
 )
 
 __all__ = [
-    "CONFLICT_DISTANCE", "CROSS", "MERGE", "DIVERGE", "LaneConflicts", "lane_conflicts",
+    "CONFLICT_DISTANCE", "CROSS", "MERGE", "DIVERGE", "LaneConflicts", "lane_conflicts", "right_of_way",
     "AgentPlan", "DriveResult", "drive", "poses_along", "follow_speed_profile",
 ]
 
@@ -259,12 +259,31 @@ def _speed_envelope(routes: BatchedPolylines, desired: np.ndarray, lengths: np.n
     return np.sqrt(np.maximum(envelope2, 0.0))
 
 
-def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConflicts,
-          plan: AgentPlan, num_steps: int = NUM_STEPS, dt: float = DT) -> DriveResult:
+def right_of_way(levels: np.ndarray, give_way: list[tuple[int, int]] = ()) -> np.ndarray:
+    """(L, L) int8 right-of-way matrix from lane priority ``levels (L,)`` (higher goes first)
+    and explicit ``give_way`` pairs ``(a, b)``: lane ``a`` gives way to lane ``b``.
+
+    Entry ``[a, b]``: 1 when an agent on ``a`` gives way to one on ``b``, -1 for the
+    reverse, 0 for first come, first served.
+    """
+    levels = np.asarray(levels, np.float64)
+    matrix = np.sign(levels[None, :] - levels[:, None]).astype(np.int8)
+    for a, b in give_way:
+        matrix[a, b], matrix[b, a] = 1, -1
+    return matrix
+
+
+def drive(lanes: list[np.ndarray], priority: np.ndarray, conflicts: LaneConflicts,
+          plan: AgentPlan, num_steps: int = NUM_STEPS, dt: float = DT,
+          trace: list | None = None) -> DriveResult:
     """Simulate all agents of ``plan`` for ``num_steps`` steps and return their logs.
 
-    ``lane_levels (L,)``: priority level of each lane at conflict zones (higher has the
-    right of way; equal levels use first come, first served).
+    ``priority``: who has the right of way at conflict zones, either lane levels ``(L,)``
+    (higher goes first) or a :func:`right_of_way` matrix ``(L, L)``; ties are first come,
+    first served. ``trace``: when a list, one
+    dict per step is appended with the constraint matrices ``gap (N, N)`` (m, the binding
+    distance to each other agent: leader, virtual leader or stop line), ``stop (N, N)``
+    (I wait for that agent at a conflict zone) and ``accel (N,)``, for debugging.
     """
     n, num_lanes = plan.num_agents, len(lanes)
     polylines = [route_polyline(lanes, r) for r in plan.routes]
@@ -288,7 +307,9 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     grid = np.arange(0.0, float(routes.length.max()) + 2.0 * _GRID, _GRID)
     envelope_grid = routes.interp(envelope, np.broadcast_to(grid, (n, grid.shape[0])))
     grid_last = grid.shape[0] - 1
-    zones = _pair_zones(offset, moving, conflicts, np.asarray(lane_levels, np.float64))
+    priority = np.asarray(priority)
+    rule = right_of_way(priority) if priority.ndim == 1 else priority.astype(np.int8)
+    zones = _pair_zones(offset, moving, conflicts, rule)
     zi, zj = zones["i"], zones["j"]
     z_in, z_out, o_in, o_out = zones["in"], zones["out"], zones["other_in"], zones["other_out"]
     is_cross, is_merge, is_diverge = zones["kind"] == CROSS, zones["kind"] == MERGE, zones["kind"] == DIVERGE
@@ -298,7 +319,7 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     half_i, half_j = half[zi], half[zj]
     half_sum = half_i + half_j
     gap_i = plan.gap.astype(np.float64)[zi]
-    accel_i = plan.accel.astype(np.float64)[zi]
+    accel_i, accel_j = plan.accel.astype(np.float64)[zi], plan.accel.astype(np.float64)[zj]
     half_sum_nn = half[:, None] + half[None, :]
 
     # ---- state
@@ -319,6 +340,8 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
     not_self = ~np.eye(n, dtype=bool)
     pair_gap = np.full((n, n), _FAR)
     pair_lead = np.zeros((n, n))
+    ahead_nn = np.full((n, n), _FAR)
+    waiting = np.zeros(n, bool)           # agents that stood at a stop line on the last step
 
     log_s = np.zeros((n, num_steps))
     log_v = np.zeros((n, num_steps))
@@ -357,16 +380,25 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
         tta_other = np.maximum(o_in - front_j, 0.0) / floor_j     # 0 once its front is in
         tta_me = np.maximum(dist_me, 0.0) / floor_i
         t_exit = (np.sqrt(v_i * v_i + 2.0 * accel_i * np.maximum(z_out - rear_i, 0.0)) - v_i) / accel_i
+        t_exit_other = (np.sqrt(v_j * v_j + 2.0 * accel_j * np.maximum(o_out - rear_j, 0.0)) - v_j) / accel_j
         near = live & ~cleared_me & (dist_me < np.maximum(8.0, 4.0 * v_i))
         claim = np.where(near, np.minimum(claim, t), claim)
         claim_other = claim[reverse]
         other_first = (claim_other < claim) | ((claim_other == claim) & (
             (tta_other < tta_me) | ((tta_other == tta_me) & lower_index)))
-        priority = higher | (same & other_first)                  # the other has the right of way
-        stop_gap = dist_me - STOP_LINE_MARGIN
+        # the other has the right of way, unless it is itself standing and waiting for someone
+        # else (a waiting car does not hold up the cars it would go before)
+        priority = (higher | (same & other_first)) & ~(waiting[zj] & (v_j < 1.0))
+        # I wait at the first of my zones still ahead of me, not inside the junction, so that
+        # a waiting car never blocks a zone another car waits for (no "blocking the box")
+        ahead_nn[zi, zj] = np.where(dist_me > 0.0, z_in, _FAR)
+        first_ahead = ahead_nn.min(axis=1)[zi]
+        stop_gap = np.where(first_ahead < _FAR, np.minimum(first_ahead, z_in), z_in) - front_i - STOP_LINE_MARGIN
         committed = stop_gap < v_i * v_i / (2.0 * COMMIT_DECEL)
         relevant = live & ~cleared_me & ~inside_me & ~cleared_other
-        yield_zone = relevant & ((is_cross & (occupied | (priority & ~committed & (tta_other < t_exit + gap_i))))
+        # I give way when our occupation times, padded by my accepted gap, overlap
+        overlap = (tta_other < t_exit + gap_i) & (t_exit_other + gap_i > tta_me)
+        yield_zone = relevant & ((is_cross & (occupied | (priority & ~committed & overlap)))
                                  | (is_diverge & occupied))
         # merges: the agent nearer the joining point leads (virtual leader); I yield to an
         # agent with priority that would reach the joining point within my accepted gap
@@ -376,6 +408,8 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
         yield_merge = (merging & ~virtual & ~inside_me & priority & ~committed
                        & (to_join_other / floor_j < to_join_me / floor_i + gap_i))
         stop = yield_zone | yield_merge
+        waiting = np.zeros(n, bool)
+        waiting[zi[stop]] = True
         pair_gap[zi, zj] = np.where(stop, stop_gap, np.where(virtual, to_join_me - to_join_other - half_sum, _FAR))
         pair_lead[zi, zj] = np.where(stop, 0.0, v_j)
 
@@ -391,6 +425,10 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
         v_free = np.minimum(envelope_grid[rows, np.minimum((s * (1.0 / _GRID)).astype(np.int64), grid_last)], v0)
         accel = a_max * (1.0 - (v / np.maximum(v_free, 0.1)) ** 4 - interaction)
         accel = np.maximum(np.minimum(np.where(min_gap < 0.05, -EMERGENCY_DECEL, accel), a_max), -EMERGENCY_DECEL)
+        if trace is not None:
+            stop_nn = np.zeros((n, n), bool)
+            stop_nn[zi, zj] = stop
+            trace.append({"gap": gap.copy(), "stop": stop_nn, "accel": accel.copy()})
         v_new = np.maximum(v + accel * dt, 0.0)
         s_new = s + 0.5 * (v + v_new) * dt
         # at the very end of the route: stop there, with the speed that covers the distance left
@@ -407,14 +445,14 @@ def drive(lanes: list[np.ndarray], lane_levels: np.ndarray, conflicts: LaneConfl
 
 
 def _pair_zones(offset: np.ndarray, moving: np.ndarray, conflicts: LaneConflicts,
-                lane_levels: np.ndarray) -> dict[str, np.ndarray]:
+                rule: np.ndarray) -> dict[str, np.ndarray]:
     """Conflict zone of every ordered pair of moving agents whose routes conflict (the first
     zone along my route), as flat arrays over those pairs.
 
     ``offset (N, L)``: arc length where lane l starts on route i (NaN: not on it). Returns
     ``i, j`` agent indices, ``in, out`` my zone on my route, ``other_in, other_out`` the
-    other's zone on its route (m), ``kind``, ``higher`` / ``same`` (the other's lane level
-    vs mine), ``reverse`` (index of the pair (j, i)).
+    other's zone on its route (m), ``kind``, ``higher`` (I give way to the other by rule),
+    ``same`` (first come, first served), ``reverse`` (index of the pair (j, i)).
     """
     n = offset.shape[0]
     best = np.full((n, n), np.inf)
@@ -437,11 +475,11 @@ def _pair_zones(offset: np.ndarray, moving: np.ndarray, conflicts: LaneConflicts
     index = np.full((n, n), -1)
     index[zi, zj] = np.arange(zi.shape[0])
     a, b = conflicts.a[c], conflicts.b[c]
-    mine, other = lane_levels[a], lane_levels[b]
+    order = rule[a, b]
     return {
         "i": zi, "j": zj,
         "in": offset[zi, a] + conflicts.enter_a[c], "out": offset[zi, a] + conflicts.exit_a[c],
         "other_in": offset[zj, b] + conflicts.enter_b[c], "other_out": offset[zj, b] + conflicts.exit_b[c],
-        "kind": conflicts.kind[c], "higher": other > mine, "same": other == mine,
+        "kind": conflicts.kind[c], "higher": order > 0, "same": order == 0,
         "reverse": index[zj, zi],
     }

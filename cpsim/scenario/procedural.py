@@ -57,7 +57,15 @@ from typing import Callable
 import numpy as np
 
 from cpsim.scenario.datatypes import AgentType, RoadType, Scenario
-from cpsim.scenario.driver import AgentPlan, DriveResult, LaneConflicts, drive, lane_conflicts, route_polyline
+from cpsim.scenario.driver import (
+    AgentPlan,
+    DriveResult,
+    LaneConflicts,
+    drive,
+    lane_conflicts,
+    right_of_way,
+    route_polyline,
+)
 from cpsim.scenario.geometry_utils import (
     arc,
     bezier,
@@ -119,6 +127,7 @@ class _Net:
     border: list[bool] = dataclasses.field(default_factory=list)
     ego_routes: list[int] = dataclasses.field(default_factory=list)
     parked: list[tuple[np.ndarray, float, float, float, int]] = dataclasses.field(default_factory=list)
+    give_way: list[tuple[int, int]] = dataclasses.field(default_factory=list)   # (lane a yields to lane b)
 
     def lane(self, polyline: np.ndarray, level: int = 1) -> int:
         self.lanes.append(np.asarray(polyline, dtype=np.float64))
@@ -295,7 +304,16 @@ def _family_intersection(rng: np.random.Generator, net: _Net) -> None:
     moves = _junction(rng, net, angles, [count] * 4, width=rng.uniform(3.2, 3.8),
                       shoulder=rng.uniform(0.6, 1.2), arm_length=rng.uniform(40.0, 55.0),
                       corner_radius=rng.uniform(5.0, 10.0),
-                      level_of=lambda k, m, kind: 0 if kind == "left" else 1, crosswalks=True)
+                      level_of=lambda k, m, kind: 1, crosswalks=True)
+    # unsigned: first come, first served, except that a left turn gives way to the oncoming
+    # straight and right-turning traffic (from the arm it would reach by going straight)
+    straight_to = {k: m for k, m, kind, _ in moves if kind == "straight"}
+    for k, _, kind, r in moves:
+        if kind != "left" or k not in straight_to:
+            continue
+        for k2, _, kind2, r2 in moves:
+            if k2 == straight_to[k] and kind2 in ("straight", "right"):
+                net.give_way.append((net.routes[r][1], net.routes[r2][1]))
     net.ego_routes.extend(r for _, _, kind, r in moves if kind == "left")
 
 
@@ -536,12 +554,12 @@ class _FamilySpec:
 
 
 _SPECS = {
-    "intersection": _FamilySpec((6, 24), (8.0, 12.0), 0.3, True),
-    "t_junction": _FamilySpec((5, 18), (8.0, 12.5), 0.3, True),
-    "roundabout": _FamilySpec((5, 18), (6.5, 10.0), 0.3, False),
-    "merge": _FamilySpec((5, 22), (14.0, 19.5), 0.35, True),
-    "lane_drop": _FamilySpec((5, 22), (10.0, 15.0), 0.35, True),
-    "parked": _FamilySpec((4, 14), (8.0, 12.0), 0.3, False),
+    "intersection": _FamilySpec((4, 22), (8.0, 12.0), 0.15, True),
+    "t_junction": _FamilySpec((4, 16), (8.0, 12.5), 0.15, True),
+    "roundabout": _FamilySpec((4, 16), (6.5, 10.0), 0.2, False),
+    "merge": _FamilySpec((4, 22), (14.0, 19.5), 0.3, True),
+    "lane_drop": _FamilySpec((4, 22), (10.0, 15.0), 0.3, True),
+    "parked": _FamilySpec((3, 12), (8.0, 12.0), 0.15, False),
 }
 
 
@@ -654,7 +672,7 @@ class _Placer:
                  zip(self.conflicts.a, self.conflicts.b, self.conflicts.exit_a) if a in own and b not in own]
         self.ego_zone_exit = float(max(exits)) if exits else entry
         length, width = self.draw_size(ego_route, allow_truck=False)
-        s0 = max(entry - rng.uniform(6.0, 30.0) - 0.5 * length, 0.5 * length + 0.5)
+        s0 = max(entry - rng.uniform(3.0, 18.0) - 0.5 * length, 0.5 * length + 0.5)
         desired = rng.uniform(*self.spec.speed)
         speed = rng.uniform(0.3, 0.9) * self.speed_at(ego_route, s0, desired)
         xy, heading = self.pose(ego_route, s0)
@@ -750,7 +768,7 @@ def _drive_clean(net: _Net, conflicts: LaneConflicts, plan: AgentPlan, ego: int)
     """Drive, then drop traffic involved in log collisions (never the ego) until the logs
     are collision-free; agents whose entry never came are dropped too. Parked agents come
     first in the plan and are never dropped."""
-    levels = np.array(net.levels)
+    levels = right_of_way(np.array(net.levels), net.give_way)
     for _ in range(MAX_AGENTS + 1):
         result = _place_parked(drive(net.lanes, levels, conflicts, plan), plan, net.parked)
         drop = result.entered < 0
