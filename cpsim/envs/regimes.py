@@ -48,6 +48,9 @@ MIX_PROFILES: tuple[str, ...] = ("aggressive", "normal", "cautious")
 _POLICY, _REPLAY, _IDM, _STATIC = 0, 1, 2, 3
 _FIXED_CONTROLLER = {"replay": _REPLAY, "idm": _IDM, "static": _STATIC}
 
+#: A co-player model that is not an SB3 model: (n, D) float32 observations -> (n,) actions.
+CoplayerFn = Callable[[np.ndarray], np.ndarray]
+
 
 def resolve_regime(name: str) -> str:
     """Canonical regime name; raises ``ValueError`` listing the accepted names."""
@@ -248,7 +251,4 @@ def make_driver(regime: str, model: Any = None, **kwargs: Any) -> TrafficDriver:
 
 
 __all__ = ["REGIMES", "REGIME_ALIASES", "POLICY_REGIMES", "MIX_PROFILES", "TrafficDriver",
-           "resolve_regime", "controllable_table", "make_driver"]
-
-# Callable type of a co-player model that is not an SB3 model (documentation only).
-CoplayerFn = Callable[[np.ndarray], np.ndarray]
+           "resolve_regime", "controllable_table", "make_driver", "CoplayerFn"]

@@ -272,3 +272,38 @@ def test_zoo_defaults_only_replace_the_zoo_default_file(tmp_path):
     for algo in ("ppo", "a2c", "dqn", "ppo_lstm"):
         with open(hyperparams_file(algo)) as f:
             assert "cpsim/Drive-v0" in yaml.safe_load(f)
+
+
+def test_drivers_sharing_one_simulator_own_their_worlds(scenarios):
+    """Evaluation style: one driver per regime on one simulator; reassigning worlds moves them."""
+    from cpsim import Simulator
+    from cpsim.envs.regimes import TrafficDriver
+
+    sim = Simulator(scenarios, num_worlds=2, max_agents=5, config={"episode_steps": STEPS})
+    seen = {"a": [], "b": []}
+
+    def model(name):
+        def act(obs):
+            seen[name].append(obs.shape[0])
+            return np.full(obs.shape[0], 7)
+        return act
+
+    a, b = TrafficDriver("policy", model("a")), TrafficDriver("normal", model("b"))
+    sim.reset(scenario_index=np.array([0, 0]))
+    a.assign(sim, [0])
+    b.assign(sim, [1])
+    n_co = int(a.coplayer_mask(sim, [0]).sum())
+    actions = np.zeros((2, 5), np.int64)
+    a.act(out=actions)
+    b.act(out=actions)
+    assert seen["a"] == [n_co] and seen["b"] == [n_co]
+    assert np.all(actions[:, 0] == 0)  # the ego slot is never a co-player
+    # next chunk: worlds swap regimes; a must no longer drive world 0
+    sim.reset(scenario_index=np.array([0, 0]))
+    a.assign(sim, [1])
+    b.assign(sim, [0])
+    a.act()
+    b.act()
+    assert seen["a"] == [n_co, n_co] and seen["b"] == [n_co, n_co]
+    a.release()
+    assert a.act().sum() == 0
