@@ -116,10 +116,13 @@ class Simulator:
         kp = max(self.config.num_partners, 1)
         self._sel_idx = wp.zeros((W, A, kp), dtype=wp.int32, device=self.device)
         self._sel_d2 = wp.zeros((W, A, kp), dtype=wp.float32, device=self.device)
+        self._obs_clear = wp.zeros((W, A), dtype=wp.bool, device=self.device)
+        self._obs_filled = wp.zeros((W, A, 2), dtype=wp.int32, device=self.device)
         self._all_worlds = wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=self.device)
         self._build_slot_tables()
         self._make_views()
         self._has_idm = False
+        self._step_launches = None
         self.reset()
 
     # ------------------------------------------------------------------ setup
@@ -240,12 +243,12 @@ class Simulator:
         return t.reshape(W, A)
 
     # ------------------------------------------------------------------ launches
-    def _launch_obs(self, worlds_wp: wp.array, n: int) -> None:
+    def _launch_obs(self, worlds_wp: wp.array, n: int, force: bool = True) -> None:
         if n == 0:
             return
         wp.launch(K.observation.observation_kernel, dim=(n, self.max_agents),
                   inputs=[self.state, self.model.arrays, self._params, worlds_wp, self._obs,
-                          self._sel_idx, self._sel_d2], device=self.device)
+                          self._sel_idx, self._sel_d2, self._obs_clear, self._obs_filled, int(force)], device=self.device)
 
     def _world_array(self, worlds: np.ndarray) -> wp.array:
         return wp.array(worlds.astype(np.int32), dtype=wp.int32, device=self.device)
@@ -306,14 +309,33 @@ class Simulator:
         over (step_count == episode_steps) do not move; their done flags and rewards read 0."""
         t = self._validate_actions(actions)
         self._actions_t.copy_(t)
+        if self._step_launches is None:
+            self._step_launches = self._record_step_launches()
+        idm, rest = self._step_launches
+        if self._has_idm:
+            idm.launch()
+        for launch in rest:
+            launch.launch()
+
+    def _record_step_launches(self):
+        """Recorded launches of the step kernels (their arguments never change: the state
+        arrays are allocated once), which skips most of wp.launch's per-call overhead."""
         dim = (self.num_worlds, self.max_agents)
         s, m, p, dev = self.state, self.model.arrays, self._params, self.device
-        if self._has_idm:
-            wp.launch(K.controllers.idm_kernel, dim=dim, inputs=[s, m, p], device=dev)
-        wp.launch(K.dynamics.dynamics_kernel, dim=dim, inputs=[s, m, p, self.control.actions], device=dev)
-        wp.launch(K.metrics.events_kernel, dim=dim, inputs=[s, m, p], device=dev)
-        wp.launch(K.metrics.finish_kernel, dim=self.num_worlds, inputs=[s, p, self._all_worlds, 1], device=dev)
-        self._launch_obs(self._all_worlds, self.num_worlds)
+
+        def rec(kernel, d, inputs):
+            return wp.launch(kernel, dim=d, inputs=inputs, device=dev, record_cmd=True)
+
+        idm = rec(K.controllers.idm_kernel, dim, [s, m, p])
+        rest = [
+            rec(K.dynamics.dynamics_kernel, dim, [s, m, p, self.control.actions]),
+            rec(K.metrics.events_kernel, dim, [s, m, p]),
+            rec(K.metrics.finish_kernel, self.num_worlds, [s, p, self._all_worlds, 1]),
+            rec(K.observation.observation_kernel, dim,
+                [s, m, p, self._all_worlds, self._obs, self._sel_idx, self._sel_d2, self._obs_clear,
+                 self._obs_filled, 0]),
+        ]
+        return idm, rest
 
     def set_conditions(self, conditions: Any, worlds: Any = None) -> None:
         """Set raw conditions, shape broadcastable to (len(worlds), A, 10); refreshes the

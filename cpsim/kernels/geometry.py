@@ -63,8 +63,12 @@ def to_local(v: wp.vec2f, c: float, s: float) -> wp.vec2f:
 @wp.func
 def box_corner(centre: wp.vec2f, heading: float, half_len: float, half_wid: float, k: int) -> wp.vec2f:
     """Corner k of a box: 0 front-left, 1 front-right, 2 rear-right, 3 rear-left."""
-    c = wp.cos(heading)
-    s = wp.sin(heading)
+    return box_corner_cs(centre, wp.cos(heading), wp.sin(heading), half_len, half_wid, k)
+
+
+@wp.func
+def box_corner_cs(centre: wp.vec2f, c: float, s: float, half_len: float, half_wid: float, k: int) -> wp.vec2f:
+    """:func:`box_corner` with the heading given as (cos, sin)."""
     fx = half_len
     ly = half_wid
     if k == 1:
@@ -138,8 +142,13 @@ def segments_intersect(p1: wp.vec2f, p2: wp.vec2f, q1: wp.vec2f, q2: wp.vec2f) -
 def segment_hits_box(p0: wp.vec2f, p1: wp.vec2f, centre: wp.vec2f, heading: float,
                      half_len: float, half_wid: float) -> bool:
     """Segment p0-p1 intersects the closed oriented box (Liang-Barsky in the box frame)."""
-    c = wp.cos(heading)
-    s = wp.sin(heading)
+    return segment_hits_box_cs(p0, p1, centre, wp.cos(heading), wp.sin(heading), half_len, half_wid)
+
+
+@wp.func
+def segment_hits_box_cs(p0: wp.vec2f, p1: wp.vec2f, centre: wp.vec2f, c: float, s: float,
+                        half_len: float, half_wid: float) -> bool:
+    """:func:`segment_hits_box` with the box heading given as (cos, sin)."""
     a = to_local(p0 - centre, c, s)
     b = to_local(p1 - centre, c, s)
     t_lo = float(0.0)

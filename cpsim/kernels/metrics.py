@@ -28,8 +28,8 @@ import warp as wp
 from cpsim.kernels.common import (COLLISION, GOAL, IDM, KERNEL_MODULE, KERNEL_OPTIONS, OFFROAD,
                                   POLICY, RULE_IGNORE, RULE_REMOVE, RUNNING, STATIC, TIMEOUT,
                                   VEHICLE, Params)
-from cpsim.kernels.geometry import (box_corner, boxes_overlap, collision_kind, grid_cell,
-                                    kind_at_fault, lane_query, segment_hits_box,
+from cpsim.kernels.geometry import (box_corner_cs, boxes_overlap, collision_kind, grid_cell,
+                                    kind_at_fault, lane_query, segment_hits_box_cs,
                                     segments_intersect, spans_two_lanes)
 from cpsim.kernels.reward import comfort_violations, write_reward
 from cpsim.model import ModelArrays
@@ -43,20 +43,35 @@ def offroad_test(m: ModelArrays, g: int, p: wp.vec2f, h: float, prev_p: wp.vec2f
     cell = grid_cell(m, g, p, False)
     hit = bool(False)
     if cell >= 0:
-        for q in range(m.edge_start[cell], m.edge_start[cell + 1]):
-            sid = m.edge_items[q]
-            ea = m.seg_a[sid]
-            eb = m.seg_b[sid]
-            if segment_hits_box(ea, eb, p, h, half_len, half_wid):
-                hit = bool(True)
-                break
-            for k in range(4):
-                c0 = box_corner(prev_p, prev_h, half_len, half_wid, k)
-                c1 = box_corner(p, h, half_len, half_wid, k)
-                if segments_intersect(c0, c1, ea, eb):
-                    hit = bool(True)
-            if hit:
-                break
+        first = m.edge_start[cell]
+        last = m.edge_start[cell + 1]
+        if last > first:
+            # corners once per agent (cos / sin are the expensive part)
+            c = wp.cos(h)
+            s = wp.sin(h)
+            pc = wp.cos(prev_h)
+            ps = wp.sin(prev_h)
+            moved = wp.length(p - prev_p) > 0.0 or h != prev_h
+            a0 = box_corner_cs(prev_p, pc, ps, half_len, half_wid, 0)
+            a1 = box_corner_cs(prev_p, pc, ps, half_len, half_wid, 1)
+            a2 = box_corner_cs(prev_p, pc, ps, half_len, half_wid, 2)
+            a3 = box_corner_cs(prev_p, pc, ps, half_len, half_wid, 3)
+            b0 = box_corner_cs(p, c, s, half_len, half_wid, 0)
+            b1 = box_corner_cs(p, c, s, half_len, half_wid, 1)
+            b2 = box_corner_cs(p, c, s, half_len, half_wid, 2)
+            b3 = box_corner_cs(p, c, s, half_len, half_wid, 3)
+            for q in range(first, last):
+                sid = m.edge_items[q]
+                ea = m.seg_a[sid]
+                eb = m.seg_b[sid]
+                if segment_hits_box_cs(ea, eb, p, c, s, half_len, half_wid):
+                    hit = True
+                elif moved:
+                    if segments_intersect(a0, b0, ea, eb) or segments_intersect(a1, b1, ea, eb) \
+                            or segments_intersect(a2, b2, ea, eb) or segments_intersect(a3, b3, ea, eb):
+                        hit = True
+                if hit:
+                    break
     return hit
 
 

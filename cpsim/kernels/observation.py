@@ -10,7 +10,7 @@ from __future__ import annotations
 import warp as wp
 
 from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
-from cpsim.kernels.common import COLLISION, KERNEL_MODULE, KERNEL_OPTIONS, VEHICLE, Params
+from cpsim.kernels.common import KERNEL_MODULE, KERNEL_OPTIONS, VEHICLE, Params
 from cpsim.kernels.geometry import grid_cell, to_local
 from cpsim.model import ModelArrays
 from cpsim.state import State
@@ -24,15 +24,36 @@ ROAD_EDGE = wp.constant(2)
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def observation_kernel(state: State, model: ModelArrays, params: Params,
                        worlds: wp.array(dtype=wp.int32), obs: wp.array3d(dtype=wp.float32),
-                       sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32)):
-    """Write obs[w, a, :] for the worlds listed in ``worlds`` (launch over (len(worlds), A))."""
+                       sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32),
+                       obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32), force: int):
+    """Write obs[w, a, :] for the worlds listed in ``worlds`` (launch over (len(worlds), A)).
+
+    Absent agents observe zeros; ``obs_clear`` remembers rows already zeroed so empty and
+    removed slots cost nothing on later steps, and ``filled[w, a]`` = (partners, road
+    segments) written last time, so only entries that were filled before are zeroed again.
+    ``force`` rewrites whole rows (after a reset, restore or an external state edit).
+    """
     i, a = wp.tid()
     w = worlds[i]
     D = params.obs_dim
     if not state.alive[w, a]:
-        for k in range(D):
-            obs[w, a, k] = 0.0
+        if force != 0 or not obs_clear[w, a]:
+            for k in range(D):
+                obs[w, a, k] = 0.0
+            obs_clear[w, a] = True
         return
+    K = params.num_partners
+    M = params.num_road
+    prev_partners = K
+    prev_road = M
+    if force == 0:
+        if obs_clear[w, a]:
+            prev_partners = 0
+            prev_road = 0
+        else:
+            prev_partners = filled[w, a, 0]
+            prev_road = filled[w, a, 1]
+    obs_clear[w, a] = False
     p = state.pos[w, a]
     h = state.heading[w, a]
     c = wp.cos(h)
@@ -79,7 +100,6 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
     for f in range(10):
         obs[w, a, oc + f] = 2.0 * (state.conditions[w, a, f] - _COND_LOW[f]) / _COND_SPAN[f] - 1.0
     # ---------------------------------------------------------------- partners
-    K = params.num_partners
     PF = params.partner_features
     op = params.obs_partners
     n = int(0)
@@ -108,32 +128,30 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
             if n < K:
                 n += 1
     inv_r = 1.0 / params.partner_radius
-    for k in range(K):
+    for k in range(n):
         base = op + k * PF
-        if k < n:
-            j = sel_idx[w, a, k]
-            rel = to_local(state.pos[w, j] - p, c, s)
-            dh = state.heading[w, j] - h
-            rv = to_local(state.vel[w, j] - vel, c, s)
-            sz = state.size[w, j]
-            obs[w, a, base + 0] = rel[0] * inv_r
-            obs[w, a, base + 1] = rel[1] * inv_r
-            obs[w, a, base + 2] = wp.cos(dh)
-            obs[w, a, base + 3] = wp.sin(dh)
-            obs[w, a, base + 4] = rv[0] / 20.0
-            obs[w, a, base + 5] = rv[1] / 20.0
-            obs[w, a, base + 6] = sz[0] / 10.0
-            obs[w, a, base + 7] = sz[1] / 5.0
-            vru = float(0.0)
-            if state.agent_type[w, j] != VEHICLE:
-                vru = 1.0
-            obs[w, a, base + 8] = vru
-            obs[w, a, base + 9] = 1.0
-        else:
-            for f in range(PF):
-                obs[w, a, base + f] = 0.0
+        j = sel_idx[w, a, k]
+        rel = to_local(state.pos[w, j] - p, c, s)
+        dh = state.heading[w, j] - h
+        rv = to_local(state.vel[w, j] - vel, c, s)
+        sz = state.size[w, j]
+        obs[w, a, base + 0] = rel[0] * inv_r
+        obs[w, a, base + 1] = rel[1] * inv_r
+        obs[w, a, base + 2] = wp.cos(dh)
+        obs[w, a, base + 3] = wp.sin(dh)
+        obs[w, a, base + 4] = rv[0] / 20.0
+        obs[w, a, base + 5] = rv[1] / 20.0
+        obs[w, a, base + 6] = sz[0] / 10.0
+        obs[w, a, base + 7] = sz[1] / 5.0
+        vru = float(0.0)
+        if state.agent_type[w, j] != VEHICLE:
+            vru = 1.0
+        obs[w, a, base + 8] = vru
+        obs[w, a, base + 9] = 1.0
+    for k in range(n * PF, prev_partners * PF):  # entries filled last time, empty now
+        obs[w, a, op + k] = 0.0
+    filled[w, a, 0] = n
     # ---------------------------------------------------------------- road
-    M = params.num_road
     RF = params.road_features
     orr = params.obs_road
     mcount = int(0)
@@ -170,8 +188,9 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
             obs[w, a, base + 6] = edge
             obs[w, a, base + 7] = 1.0
             mcount += 1
-    for k in range(mcount * RF, M * RF):
+    for k in range(mcount * RF, prev_road * RF):
         obs[w, a, orr + k] = 0.0
+    filled[w, a, 1] = mcount
 
 
 __all__ = ["observation_kernel"]
