@@ -2,9 +2,9 @@
 
 Data: the training pool's logs. Every agent is put on log replay; at each step the
 simulator's observation of every controllable vehicle whose log is valid at ``t`` and
-``t + 1`` is a sample, and its label is the discrete action (default: the 12-action
-jerk set) that best reproduces the logged next state from the agent's current simulator
-state. The label is found with the simulator's own dynamics: the current state of the
+``t + H`` is a sample, and its label is the discrete action (default: the 12-action
+jerk set) that, held for ``H`` steps (default 5, 0.5 s), best reproduces the logged state
+``H`` steps ahead from the agent's current simulator state. The label is found with the simulator's own dynamics: the current state of the
 chunk's worlds is restored into a probe simulator holding one copy per action
 (one-to-many :meth:`cpsim.Simulator.restore`), every copy steps with its action, and the
 action whose next pose is closest to the log wins (position error plus heading and speed
@@ -177,8 +177,16 @@ def _padded_logs(scenarios: Sequence[Any]) -> tuple[np.ndarray, ...]:
 
 
 def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32, sim_config: Any = None,
-            seed: int = 0, progress: bool = False) -> BCData:
-    """Log-replay observations and best-reproducing action labels (see module docstring)."""
+            seed: int = 0, progress: bool = False, lookahead: int = 5) -> BCData:
+    """Log-replay observations and best-reproducing action labels (see module docstring).
+
+    ``lookahead``: the candidate action is held for this many steps and compared with the
+    log that many steps ahead (one step of jerk moves a car by millimetres, too little to
+    tell actions apart; 0.5 s separates them by decimetres). Samples need a valid log at
+    ``t`` and ``t + lookahead``.
+    """
+    if lookahead < 1:
+        raise ValueError(f"lookahead: must be >= 1, got {lookahead}")
     import cpsim
     from cpsim.config import SimConfig
 
@@ -192,7 +200,10 @@ def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32
     probe = cpsim.Simulator(scenarios, num_worlds=W * K, max_agents=max_agents, config=cfg, seed=seed)
     A = int(sim.max_agents)
     log_xy, log_h, log_v, log_valid, log_ctrl = _padded_logs(scenarios)
-    horizon = int(min(cfg.episode_steps, scenarios[0].num_steps - 1))
+    H = int(lookahead)
+    horizon = int(min(cfg.episode_steps, scenarios[0].num_steps - 1 - H))
+    if horizon < 1:
+        raise ValueError(f"lookahead: {H} leaves no step of the logs to label")
     source = np.repeat(np.arange(W), K)  # probe world i copies chunk world i // K
     probe_actions = np.broadcast_to(np.tile(np.arange(K), W)[:, None], (W * K, A)).astype(np.int64)
     all_worlds = np.arange(W)
@@ -209,18 +220,19 @@ def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32
         usable_world[: idx.size] = True
         for t in range(horizon):
             ok = (agent >= 0) & log_ctrl[s_idx, a_safe] & log_valid[s_idx, a_safe, t] \
-                & log_valid[s_idx, a_safe, t + 1] & _np(sim.alive) & usable_world[:, None]
+                & log_valid[s_idx, a_safe, t + H] & _np(sim.alive) & usable_world[:, None]
             if ok.any():
                 snap = sim.snapshot(all_worlds)
                 probe.restore(snap, np.arange(W * K), source=source)
                 probe.set_controllers(np.full((W * K, A), _POLICY, np.int32))
-                probe.step(probe_actions)
+                for _ in range(H):
+                    probe.step(probe_actions)
                 pxy = _np(probe.xy).reshape(W, K, A, 2)
                 ph = _np(probe.heading).reshape(W, K, A)
                 pv = _np(probe.speed).reshape(W, K, A)
-                txy = log_xy[s_idx, a_safe, t + 1]  # (W, A, 2)
-                th_ = log_h[s_idx, a_safe, t + 1]
-                tv = log_v[s_idx, a_safe, t + 1]
+                txy = log_xy[s_idx, a_safe, t + H]  # (W, A, 2)
+                th_ = log_h[s_idx, a_safe, t + H]
+                tv = log_v[s_idx, a_safe, t + H]
                 dpos = np.linalg.norm(pxy - txy[:, None], axis=-1)
                 dh = np.abs((ph - th_[:, None] + np.pi) % (2 * np.pi) - np.pi)
                 dv = np.abs(pv - tv[:, None])

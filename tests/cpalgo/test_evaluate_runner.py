@@ -192,3 +192,34 @@ def test_cli_writes_results(tmp_path):
     assert {"summary.json", "tables.md", "tasks.csv", "scores_random.png", "outcomes.png"} <= names
     md = (out / "tables.md").read_text()
     assert "| expert-replay |" in md and "| idm |" in md
+
+
+def test_sb3_checkpoint_ego_and_traffic_in_every_regime(tasks, tmp_path):
+    """A saved RecurrentPPO checkpoint as ego and as co-player policy, a BC checkpoint for
+    the log-imitation regime: all eight regimes in one run, deterministic across runs."""
+    from sb3_contrib import RecurrentPPO
+
+    from cpalgo.bc import BCPolicy
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    env = SelfPlayVecEnv([tasks[0].scenario], num_worlds=1, max_agents=4)
+    model = RecurrentPPO("MlpLstmPolicy", env, n_steps=8, seed=0,
+                         policy_kwargs=dict(lstm_hidden_size=16, net_arch=[16]))
+    anchor = tmp_path / "anchor.zip"
+    model.save(anchor)
+    layout = env.obs_layout
+    bc = BCPolicy(layout.size, env.action_space.n, (16,), (layout.condition.start, layout.condition.stop))
+    bc_path = bc.save(tmp_path / "bc.pt")
+    two = [tasks[0], tasks[N_TASKS]]  # one task of each split
+    runs = [R.evaluate(str(anchor), two, R.REGIMES, traffic_policy=str(anchor), bc_policy=bc_path,
+                       progress=False, max_worlds=8) for _ in range(2)]
+    c = runs[0].columns
+    assert runs[0].num_rows == 2 * len(R.REGIMES)
+    assert set(c["regime"]) == set(R.REGIMES) and set(c["split"]) == {"interactive", "random"}
+    for k in ("goal", "at_fault_collision", "offroad", "score", "co_player_harm", "steps_alive"):
+        np.testing.assert_array_equal(c[k], runs[1].columns[k])
+    assert np.all((c["steps_alive"] >= 1) & (c["steps_alive"] <= 91))
+    # a BC checkpoint whose observation size does not match is refused up front
+    small = BCPolicy(layout.size - 3, env.action_space.n, (8,)).save(tmp_path / "small.pt")
+    with pytest.raises(ValueError, match="bc_policy: observation size"):
+        R.Evaluator(two, ["bc"], bc_policy=small)
