@@ -1,0 +1,51 @@
+"""Atomic checkpoints: a crash mid-``learn`` never leaves a half-written model file.
+
+SB3's ``save`` writes the zip in place; we write to a temp file in the same folder and
+``os.replace`` it over the target, which is atomic on POSIX file systems.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from stable_baselines3.common.callbacks import BaseCallback
+
+
+def save_model_atomic(model: Any, path: str | os.PathLike) -> Path:
+    """Save an SB3 model to ``path`` (``.zip`` appended when missing) atomically."""
+    path = Path(path)
+    if path.suffix != ".zip":
+        path = path.with_suffix(path.suffix + ".zip") if path.suffix else path.with_suffix(".zip")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".zip.tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        model.save(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+class AtomicCheckpointCallback(BaseCallback):
+    """Every ``save_freq`` calls to ``env.step`` (one call = ``num_envs`` transitions), save
+    the model atomically to ``path`` (one file, overwritten: always the latest good one)."""
+
+    def __init__(self, save_freq: int, path: str | os.PathLike, verbose: int = 0):
+        super().__init__(verbose)
+        if save_freq < 1:
+            raise ValueError(f"save_freq: must be >= 1, got {save_freq}")
+        self.save_freq = int(save_freq)
+        self.path = Path(path)
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.save_freq == 0:
+            saved = save_model_atomic(self.model, self.path)
+            if self.verbose:
+                print(f"checkpoint: {saved} at {self.num_timesteps} timesteps")
+        return True

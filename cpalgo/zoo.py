@@ -1,0 +1,195 @@
+"""rl-zoo3 launcher: ``python -m cpalgo.zoo train|enjoy [rl-zoo3 arguments]``.
+
+What it adds to rl-zoo3 before handing over to its own ``train`` / ``enjoy`` entry points:
+
+* ``counterplay`` in ``rl_zoo3.ALGOS`` (and in the copies the train script, the experiment
+  manager and enjoy imported), so ``--algo counterplay`` works; ``ppo_lstm`` is
+  rl-zoo3's RecurrentPPO and trains the anchor.
+* the Gymnasium id ``cpsim/SelfPlay-v0``: the batched self-play env. rl-zoo3 builds
+  ``n_envs`` env functions and hands them to ``ExperimentManager.default_vec_env_cls``;
+  we plug in :class:`ZooSelfPlayVecEnv`, which builds one :class:`cpsim.SelfPlayVecEnv`
+  with ``n_envs / max_agents`` worlds from the YAML's ``env_kwargs``. So in our YAML
+  files ``n_envs`` counts agent slots, not processes.
+
+``-f file.yml`` is read as ``--conf-file file.yml`` (rl-zoo3's own ``-f`` is the log folder,
+which stays available as ``--log-folder``). Example::
+
+    python -m cpalgo.zoo train --algo counterplay --env cpsim/SelfPlay-v0 \\
+        -f zoo/counterplay.yml -i zoo/anchor.zip -n 20000
+    python -m cpalgo.zoo enjoy --algo counterplay --env cpsim/SelfPlay-v0 -f logs/ --no-render
+
+``cpsim/SelfPlay-v0`` names a batched environment: made on its own (``gymnasium.make``)
+it only carries its settings, and ``reset`` / ``step`` explain how to use it instead.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any, Callable, Sequence
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+from cpalgo.recipes import SELFPLAY_ENV_ID
+
+SELFPLAY_KEYS = ("max_agents", "family", "womd_dir", "num_scenarios", "dynamics", "condition",
+                 "device", "render_mode")
+
+
+class SelfPlaySettings(gymnasium.Env):
+    """Carrier of the self-play settings for rl-zoo3 (``gymnasium.make("cpsim/SelfPlay-v0", **kw)``).
+
+    Holds the :class:`cpsim.SelfPlayVecEnv` keyword arguments and the matching spaces;
+    :class:`ZooSelfPlayVecEnv` reads them. It cannot be stepped on its own: self-play
+    needs every agent slot of a world at once.
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(self, max_agents: int = 8, family: str | None = None, womd_dir: str | None = None,
+                 num_scenarios: int | None = None, dynamics: str = "jerk", condition: Any = "train",
+                 device: str = "cpu", render_mode: str | None = None, **config_overrides: Any):
+        from cpsim.config import SimConfig
+        from cpsim.envs.selfplay import OBS_BOUND
+        from cpsim.observation import ObsLayout
+
+        if render_mode == "human":
+            raise ValueError("render_mode: 'human' is not supported by cpsim/SelfPlay-v0; "
+                             "pass --no-render to rl-zoo3's enjoy (or use render_mode='rgb_array')")
+        config = SimConfig.from_dict({"dynamics": dynamics, **config_overrides})
+        layout = ObsLayout(num_partners=config.num_partners, num_road=config.num_road)
+        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (layout.size,), np.float32)
+        self.action_space = spaces.Discrete(int(config.num_actions))
+        self.render_mode = render_mode
+        self.selfplay_kwargs: dict[str, Any] = dict(
+            max_agents=int(max_agents), family=family, womd_dir=womd_dir, num_scenarios=num_scenarios,
+            dynamics=dynamics, condition=condition, device=device, render_mode=render_mode,
+            **config_overrides,
+        )
+
+    def _batched_only(self) -> None:
+        raise RuntimeError(
+            f"{SELFPLAY_ENV_ID} is a batched self-play environment: build cpsim.SelfPlayVecEnv "
+            "directly, or train through `python -m cpalgo.zoo`, which plugs it into rl-zoo3"
+        )
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> Any:
+        self._batched_only()
+
+    def step(self, action: Any) -> Any:
+        self._batched_only()
+
+
+def _settings_of(env: gymnasium.Env) -> dict[str, Any]:
+    inner = env.unwrapped
+    if not isinstance(inner, SelfPlaySettings):
+        raise ValueError(f"ZooSelfPlayVecEnv: expected {SELFPLAY_ENV_ID} env functions, got {type(inner).__name__}")
+    return dict(inner.selfplay_kwargs)
+
+
+def make_zoo_vec_env_class() -> type:
+    """The VecEnv class rl-zoo3 instantiates with its ``env_fns`` (built lazily: it
+    subclasses :class:`cpsim.SelfPlayVecEnv`, whose import loads the simulator)."""
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    class ZooSelfPlayVecEnv(SelfPlayVecEnv):
+        """``SelfPlayVecEnv`` built from rl-zoo3's env functions: worlds = ceil(n / max_agents)."""
+
+        def __init__(self, env_fns: Sequence[Callable[[], gymnasium.Env]], **kwargs: Any):
+            if not env_fns:
+                raise ValueError("env_fns: empty")
+            carrier = env_fns[0]()
+            settings = _settings_of(carrier)
+            carrier.close()
+            settings.update(kwargs)
+            max_agents = int(settings.pop("max_agents"))
+            worlds = max(1, math.ceil(len(env_fns) / max_agents))
+            super().__init__(num_worlds=worlds, max_agents=max_agents, **settings)
+
+    return ZooSelfPlayVecEnv
+
+
+def register() -> None:
+    """Register the self-play id and CounterPlay with rl-zoo3 (idempotent)."""
+    import rl_zoo3
+    import rl_zoo3.exp_manager
+    import rl_zoo3.utils
+
+    from cpalgo import CounterPlay
+
+    if SELFPLAY_ENV_ID not in gymnasium.registry:
+        gymnasium.register(id=SELFPLAY_ENV_ID, entry_point="cpalgo.zoo:SelfPlaySettings",
+                           disable_env_checker=True)
+    for module in (rl_zoo3, rl_zoo3.utils, rl_zoo3.exp_manager):
+        algos = getattr(module, "ALGOS", None)
+        if algos is not None:
+            algos["counterplay"] = CounterPlay
+
+
+def _uses_selfplay(argv: Sequence[str]) -> bool:
+    args = list(argv)
+    for i, a in enumerate(args):
+        if a == "--env" and i + 1 < len(args):
+            return args[i + 1] == SELFPLAY_ENV_ID
+        if a.startswith("--env="):
+            return a.split("=", 1)[1] == SELFPLAY_ENV_ID
+    return False
+
+
+def _translate_config_flag(args: list[str]) -> list[str]:
+    """rl-zoo3's ``-f`` is the log folder; ``-f something.yml`` here means the hyperparameter
+    file (``--conf-file``), so the short form in our docs works as written."""
+    out = list(args)
+    for i, a in enumerate(out[:-1]):
+        if a in ("-f", "--log-folder") and out[i + 1].endswith((".yml", ".yaml")):
+            out[i] = "--conf-file"
+    return out
+
+
+def _enjoy_n_envs(args: list[str]) -> list[str]:
+    """rl-zoo3's enjoy treats ``--n-envs 1`` (its default) as one scalar env, but one
+    self-play world already has ``max_agents`` env indices: default to 64 slots."""
+    for i, a in enumerate(args[:-1]):
+        if a == "--n-envs":
+            if int(args[i + 1]) == 1:
+                raise SystemExit("--n-envs: cpsim/SelfPlay-v0 counts agent slots; use at least max_agents (e.g. 64)")
+            return args
+    return [*args, "--n-envs", "64"]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] not in ("train", "enjoy"):
+        print("usage: python -m cpalgo.zoo {train,enjoy} [rl-zoo3 arguments]", file=sys.stderr)
+        return 2
+    command, rest = argv[0], _translate_config_flag(argv[1:])
+    register()
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    if _uses_selfplay(rest):
+        ExperimentManager.default_vec_env_cls = make_zoo_vec_env_class()
+        if command == "enjoy":
+            rest = _enjoy_n_envs(rest)
+    sys.argv = [f"rl_zoo3.{command}", *rest]
+    if command == "train":
+        import rl_zoo3.train
+
+        for module in (rl_zoo3.train,):
+            getattr(module, "ALGOS")["counterplay"] = sys.modules["cpalgo"].CounterPlay
+        rl_zoo3.train.train()
+    else:
+        import rl_zoo3.enjoy
+
+        rl_zoo3.enjoy.ALGOS["counterplay"] = sys.modules["cpalgo"].CounterPlay
+        rl_zoo3.enjoy.enjoy()
+    return 0
+
+
+if __name__ == "__main__":
+    # run the copy of this module that gymnasium's entry point imports (cpalgo.zoo), not
+    # __main__, so that the carrier class is one and the same
+    from cpalgo import zoo as _zoo
+
+    raise SystemExit(_zoo.main())
