@@ -18,13 +18,14 @@ constraining of:
   me to a stop at the end of my route (agents stay on the map, valid to the last step).
 
 Conflict zones come from pairs of lanes whose centrelines pass closer than
-:data:`CONFLICT_DISTANCE` (crossing, merging or diverging lanes). At a crossing I stop
-before the zone while another agent occupies it, or while an agent that has priority
-(higher lane priority level, else first come: who first got near the zone, else who
-arrives sooner, else the lower index) reaches the zone before I could clear it plus my
-accepted time gap. Priorities form a strict order per pair and waits are released by
-the first-come rule, which avoids deadlocks in practice; the generator still checks the
-logs for collisions and drops offending traffic.
+:data:`CONFLICT_DISTANCE` (crossing, merging or diverging lanes). At a crossing I wait
+while another agent occupies the zone, or while an agent that has the right of way
+(by the lane rule, :func:`right_of_way`; else first come: who first got near the zone,
+else who arrives sooner, else the lower index) would be in the zone while I am, padded by
+my accepted time gap, unless that agent is itself standing and waiting for someone
+else. I wait at the first of my zones still ahead (not inside the junction) and go on
+once I could no longer stop comfortably. The generator still checks the logs for
+collisions and drops offending traffic.
 
 Public helpers :func:`poses_along` and :func:`follow_speed_profile` turn an arc-length
 or speed profile on any polyline into poses; the simulator's IDM and replay code and
@@ -60,6 +61,7 @@ STOP_LINE_MARGIN = 1.0    # my front stops this far before a conflict zone, m
 COMMIT_DECEL = 3.5        # past the point where stopping needs more than this, I go on, m/s^2
 LATERAL_ACCEL = 2.5       # comfortable lateral acceleration in curves, m/s^2
 ENVELOPE_DECEL = 1.5      # deceleration used to anticipate curves and route ends, m/s^2
+CRUISE_FRACTION = 0.75    # zone crossing times assume at most this share of the desired speed
 END_MARGIN = 1.0          # agents stop with their front this far before the end of their route, m
 _FAR = 1.0e9
 _GRID = 0.5               # arc-length step of the tabulated speed envelope, m
@@ -320,6 +322,9 @@ def drive(lanes: list[np.ndarray], priority: np.ndarray, conflicts: LaneConflict
     half_sum = half_i + half_j
     gap_i = plan.gap.astype(np.float64)[zi]
     accel_i, accel_j = plan.accel.astype(np.float64)[zi], plan.accel.astype(np.float64)[zj]
+    # speed assumed when estimating how long crossing a zone takes (curves slow agents down)
+    cruise = np.maximum(CRUISE_FRACTION * plan.desired_speed.astype(np.float64), 1.0)
+    cruise_i, cruise_j = cruise[zi], cruise[zj]
     half_sum_nn = half[:, None] + half[None, :]
 
     # ---- state
@@ -379,8 +384,8 @@ def drive(lanes: list[np.ndarray], priority: np.ndarray, conflicts: LaneConflict
         floor_i, floor_j = np.maximum(v_i, 2.0), np.maximum(v_j, 2.0)
         tta_other = np.maximum(o_in - front_j, 0.0) / floor_j     # 0 once its front is in
         tta_me = np.maximum(dist_me, 0.0) / floor_i
-        t_exit = (np.sqrt(v_i * v_i + 2.0 * accel_i * np.maximum(z_out - rear_i, 0.0)) - v_i) / accel_i
-        t_exit_other = (np.sqrt(v_j * v_j + 2.0 * accel_j * np.maximum(o_out - rear_j, 0.0)) - v_j) / accel_j
+        t_exit = _travel_time(np.maximum(z_out - rear_i, 0.0), v_i, accel_i, cruise_i)
+        t_exit_other = _travel_time(np.maximum(o_out - rear_j, 0.0), v_j, accel_j, cruise_j)
         near = live & ~cleared_me & (dist_me < np.maximum(8.0, 4.0 * v_i))
         claim = np.where(near, np.minimum(claim, t), claim)
         claim_other = claim[reverse]
@@ -442,6 +447,16 @@ def drive(lanes: list[np.ndarray], priority: np.ndarray, conflicts: LaneConflict
     velocity = log_v[..., None] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
     return DriveResult(s=log_s, speed=log_v, valid=log_valid, xy=xy, heading=heading,
                        velocity=velocity, routes=routes, entered=entered)
+
+
+def _travel_time(distance: np.ndarray, speed: np.ndarray, accel: np.ndarray, cruise: np.ndarray) -> np.ndarray:
+    """Time (s) to cover ``distance`` (m) from ``speed`` accelerating at ``accel`` up to ``cruise``
+    (then constant; an agent already faster than ``cruise`` keeps its speed)."""
+    cruise = np.maximum(cruise, speed)
+    ramp = (cruise * cruise - speed * speed) / (2.0 * accel)
+    accelerating = (np.sqrt(speed * speed + 2.0 * accel * distance) - speed) / accel
+    return np.where(distance <= ramp, accelerating,
+                    (cruise - speed) / accel + (distance - ramp) / np.maximum(cruise, 0.1))
 
 
 def _pair_zones(offset: np.ndarray, moving: np.ndarray, conflicts: LaneConflicts,

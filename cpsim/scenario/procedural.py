@@ -12,9 +12,9 @@ Families (right-hand traffic; every scene is rotated by a random angle about the
     Four-way unsigned junction. Four arms at 90 deg +- 11 deg, 1 or 2 lanes per
     direction (lane width 3.2-3.8 m), arms 40-55 m long, rounded corners (radius 5-10 m),
     a crosswalk across every arm. Connector lanes for every movement (straight from each
-    lane, left turns from the inner lane, right turns from the outer lane). Straight and
-    right turns have priority over left turns; otherwise first come, first served. Ego:
-    an unprotected left turner.
+    lane, left turns from the inner lane, right turns from the outer lane). Left turns
+    give way to oncoming straight and right-turning traffic; otherwise first come, first
+    served. Ego: an unprotected left turner.
 ``t_junction``
     A main road (1-2 lanes per direction) and a one-lane side road meeting at 90 deg
     +- 17 deg. Main-road through and right-turn traffic has priority, main-road left turns
@@ -37,6 +37,11 @@ Families (right-hand traffic; every scene is rotated by a random angle about the
     trucks partly blocking the right lane; a bypass lane swings into the opposite lane
     around them. Oncoming traffic has priority. Ego: the first car behind the parked
     vehicles. Parked vehicles are agents with goal == start (not controllable).
+
+Traffic around the ego: 1-3 agents on routes that cross or join the ego's, present from
+step 0 and timed to reach the conflict at about the ego's time; the other agents use the
+other routes (some entering later at the map border). The ego's goal lies past its conflict
+zones (at most 25 m past the first one; 12 m in roundabouts) unless its log goes further.
 
 Road polylines are ordered lanes first, so lane ``k`` of a route is road polyline ``k``
 (:attr:`ProceduralScene.routes`). ``ROAD_EDGE`` polylines bound the drivable area and
@@ -128,6 +133,7 @@ class _Net:
     ego_routes: list[int] = dataclasses.field(default_factory=list)
     parked: list[tuple[np.ndarray, float, float, float, int]] = dataclasses.field(default_factory=list)
     give_way: list[tuple[int, int]] = dataclasses.field(default_factory=list)   # (lane a yields to lane b)
+    ego_reach: float = 25.0    # the ego's goal lies at most this far past its first conflict zone, m
 
     def lane(self, polyline: np.ndarray, level: int = 1) -> int:
         self.lanes.append(np.asarray(polyline, dtype=np.float64))
@@ -349,6 +355,7 @@ def _family_roundabout(rng: np.random.Generator, net: _Net) -> None:
     r_island = r_ring - width / 2 - rng.uniform(2.0, 2.6)
     delta, gamma = rng.uniform(0.35, 0.45), rng.uniform(0.08, 0.14)
     r_arm, arm_length = r_ring + rng.uniform(11.0, 15.0), rng.uniform(35.0, 50.0)
+    net.ego_reach = 12.0       # into the ring and round to about the next entry
     centre = np.zeros(2)
     u = [_unit(a) for a in angles]
     nrm = [_unit(a + np.pi / 2) for a in angles]
@@ -389,7 +396,7 @@ def _family_roundabout(rng: np.random.Generator, net: _Net) -> None:
                 q = (k + step) % arms
                 ring += [ring_at[q], ring_between[q]]
             full = (ins[k], entries[k], *ring, exits[m], outs[m])
-            net.route(full, ego=True)
+            net.route(full, ego=hops <= 2)      # the ego leaves at the first or second exit
             net.route((*ring, exits[m], outs[m]), border=False)   # traffic already on the ring
     # edges: island, and the outer boundary between consecutive arms
     net.edges.append(arc(centre, r_island, 0.0, 2 * np.pi, EDGE_SPACING))
@@ -665,12 +672,13 @@ class _Placer:
         ego_route = int(net.ego_routes[int(rng.integers(len(net.ego_routes)))])
         others = [r for r in range(len(net.routes)) if r != ego_route]
         zones = [z for z in (self.conflict_zone(ego_route, r) for r in others) if z is not None]
-        entry = min(zones)[0] if zones else 0.5 * self.cum[ego_route][-1]
-        # the ego's task runs through all of its conflict zones (e.g. out of the junction)
+        entry, first_exit = min(zones) if zones else (0.5 * self.cum[ego_route][-1],) * 2
+        # the ego's task runs through its conflict zones (out of the junction), but not
+        # more than net.ego_reach m past its first one (a roundabout ring passes many entries)
         own = net.routes[ego_route]
         exits = [self.offsets[ego_route][a] + x for a, b, x in
                  zip(self.conflicts.a, self.conflicts.b, self.conflicts.exit_a) if a in own and b not in own]
-        self.ego_zone_exit = float(max(exits)) if exits else entry
+        self.ego_zone_exit = min(float(max(exits)), first_exit + net.ego_reach) if exits else entry
         length, width = self.draw_size(ego_route, allow_truck=False)
         s0 = max(entry - rng.uniform(3.0, 18.0) - 0.5 * length, 0.5 * length + 0.5)
         desired = rng.uniform(*self.spec.speed)
@@ -683,8 +691,13 @@ class _Placer:
         ego_eta = max(entry - s0 - 0.5 * length, 0.0) / max(speed, 3.0)
         # rivals: routes that conflict with the ego's, timed to arrive at about the same time
         rivals = [r for r in others if self.conflict_entry(r, ego_route) is not None]
+        rival_set = set(rivals)
+        # at most 1-3 agents on routes that cross or join the ego's, all present from the
+        # start: the ego meets real interaction but its task stays feasible (the rest of the
+        # traffic uses the other routes)
+        max_rivals = int(rng.integers(1, 4))
         tries = 0
-        while rivals and tries < 6 and len(self.agents) < min(target, len(net.parked) + 3):
+        while rivals and tries < 6 and len(self.agents) < min(target, len(net.parked) + 1 + max_rivals):
             tries += 1
             r = int(rivals[int(rng.integers(len(rivals)))])
             e_r = self.conflict_entry(r, ego_route)
@@ -698,6 +711,24 @@ class _Placer:
             xy, heading = self.pose(r, s_r)
             if self.fits(xy, heading, length, width, speed):
                 self.add(r, s_r, speed, 0, length, width)
+        count_rivals = sum(1 for a in self.agents if a["route_id"] in rival_set)
+        for _ in range(0 if count_rivals else 10):     # the timed draw failed: anywhere before the zone
+            r = int(rivals[int(rng.integers(len(rivals)))]) if rivals else -1
+            if r < 0:
+                break
+            length, width = self.draw_size(r, allow_truck=True)
+            hi = self.conflict_entry(r, ego_route) - 3.0 - 0.5 * length
+            if hi <= 0.5 * length + 0.5:
+                continue
+            s_r = rng.uniform(0.5 * length + 0.5, hi)
+            speed = rng.uniform(0.5, 1.0) * self.speed_at(r, s_r, rng.uniform(*self.spec.speed))
+            xy, heading = self.pose(r, s_r)
+            if self.fits(xy, heading, length, width, speed):
+                self.add(r, s_r, speed, 0, length, width)
+                count_rivals = 1
+                break
+        if not count_rivals:
+            raise _Reject("no agent crosses or joins the ego's route")
         # traffic: anywhere on the first lane of a random route, or entering later at its start
         tries = 0
         while len(self.agents) < target and tries < 6 * target:
@@ -705,7 +736,11 @@ class _Placer:
             r = int(rng.integers(len(net.routes)))
             length, width = self.draw_size(r, allow_truck=True)
             desired = rng.uniform(*self.spec.speed)
-            if rng.random() < self.spec.late_fraction and net.border[r]:
+            late = rng.random() < self.spec.late_fraction
+            if r in rival_set:
+                if late or count_rivals >= max_rivals:
+                    continue
+            if late and net.border[r]:
                 s_r = 0.5 * length + 0.5
                 self.add(r, s_r, rng.uniform(0.6, 1.0) * self.speed_at(r, s_r, desired),
                          int(rng.integers(3, 70)), length, width)
@@ -720,6 +755,7 @@ class _Placer:
             xy, heading = self.pose(r, s_r)
             if self.fits(xy, heading, length, width, speed):
                 self.add(r, s_r, speed, 0, length, width)
+                count_rivals += int(r in rival_set)
         return ego
 
     def plan(self) -> AgentPlan:
@@ -835,6 +871,10 @@ def _build_once(family: str, seed: int, rng: np.random.Generator, spec: _FamilyS
     n = plan.num_agents
     if n < 2:
         raise _Reject("fewer than two agents")
+    ego_lanes = set(plan.routes[ego])
+    partner_lanes = {lane for i, r in enumerate(plan.routes) if i != ego and not plan.static[i] for lane in r}
+    if not any(a in ego_lanes and b in partner_lanes - ego_lanes for a, b in zip(conflicts.a, conflicts.b)):
+        raise _Reject("no remaining agent crosses or joins the ego's route")
     return _assemble(family, seed, rng, net, plan, result, ego, placer.ego_zone_exit, angle)
 
 
