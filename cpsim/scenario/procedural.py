@@ -844,12 +844,36 @@ def build(family: str, seed: int) -> ProceduralScene:
     seed = int(seed)
     rng = np.random.default_rng([index, seed])
     spec = _SPECS[family]
-    for _ in range(_MAX_ATTEMPTS):
+    fallback: ProceduralScene | None = None
+    valid_draws = 0
+    for _ in range(_MAX_ATTEMPTS + _CLEARING_ATTEMPTS):
         try:
-            return _build_once(family, seed, rng, spec)
+            scene = _build_once(family, seed, rng, spec)
         except _Reject:
             continue
+        # Prefer scenes whose expert ego clears its conflict and reaches its goal, so that
+        # log replay (the "expert" regime) completes the task; a scene where it does not is
+        # kept only when no such draw comes up within _CLEARING_ATTEMPTS valid scenes.
+        if _ego_log_reaches_goal(scene.scenario):
+            return scene
+        fallback = fallback or scene
+        valid_draws += 1
+        if valid_draws >= _CLEARING_ATTEMPTS:
+            break
+    if fallback is not None:
+        return fallback
     raise RuntimeError(f"procedural family {family!r} seed {seed}: no valid scene in {_MAX_ATTEMPTS} draws")
+
+
+#: Valid scenes drawn per seed while looking for one whose expert ego reaches its goal.
+_CLEARING_ATTEMPTS = 12
+
+
+def _ego_log_reaches_goal(scenario: Scenario, radius: float = 2.0) -> bool:
+    """Whether the ego's logged final position lies within ``radius`` of its goal."""
+    e = scenario.ego_index
+    last = int(np.nonzero(scenario.log_valid[e])[0][-1])
+    return bool(np.linalg.norm(scenario.log_xy[e, last] - scenario.goal_xy[e]) <= radius)
 
 
 def _build_once(family: str, seed: int, rng: np.random.Generator, spec: _FamilySpec) -> ProceduralScene:

@@ -211,6 +211,12 @@ def test_logs_continuous_and_consistent(scenes):
                 assert np.allclose(np.arctan2(vel[:, 1], vel[:, 0]), h, atol=1e-3)
 
 
+def test_expert_ego_log_reaches_goal_in_most_scenes(scenes):
+    # log replay is the "expert" traffic regime: its ego must be able to finish the task
+    reached = [proc._ego_log_reaches_goal(scene.scenario) for scene in scenes.values()]
+    assert np.mean(reached) >= 0.75, reached
+
+
 def test_parked_vehicles_and_late_entries(scenes):
     parked_seen = late_seen = 0
     for (family, seed), scene in scenes.items():
