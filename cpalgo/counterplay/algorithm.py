@@ -29,6 +29,7 @@ and ``mask_inactive=False`` the computation is exactly the parent's: parameters 
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from copy import deepcopy
 from typing import Any, ClassVar, Sequence, TypeVar
@@ -715,8 +716,10 @@ class CounterPlay(RecurrentPPO):
         roots.new_episodes(reset)
 
     def _rollout_end(self, env: VecEnv) -> None:
+        start = time.process_time()
         if self._branching and self._requests:
             self._run_searches()
+        self._gen_stats["search_cpu_s"] = time.process_time() - start
         if self._roots is not None:
             self._roots.collect_garbage()
         self._requests = []
@@ -891,6 +894,7 @@ class CounterPlay(RecurrentPPO):
         for name in self.panel:
             record(f"counterplay/profile/{name}", s[f"profile_{name}"])
         gen_total = summary["main"] + summary["branch"]
+        record("counterplay/search_cpu_s", s["search_cpu_s"])
         record("counterplay/branch_share", summary["branch"] / gen_total if gen_total else 0.0)
         for key in ("main", "factual", "candidate", "verification", "total"):
             record(f"counterplay/budget_{key}", getattr(self.budget, key))

@@ -2,9 +2,10 @@
 
     python -m cpalgo.counterplay.bench --worlds 4 --agents 8 --n-steps 91 --generations 3
 
-Both algorithms train on the same :class:`cpsim.SelfPlayVecEnv` (procedural training pool,
-conditions from p_train). One warm-up generation is run first (Warp module load, branch
-simulator construction); the timed generations follow. With ``--anchor`` the CounterPlay
+Both algorithms train on identical :class:`cpsim.SelfPlayVecEnv` copies (procedural training
+pool, conditions from p_train). One warm-up generation each is run first (Warp module load,
+branch simulator construction); the timed generations follow, alternating, and the median
+is reported. With ``--anchor`` the CounterPlay
 run starts from a saved RecurrentPPO / CounterPlay checkpoint (its policy weights), which
 is where searches find teachers; a fresh policy rarely completes a retry.
 """
@@ -36,21 +37,50 @@ class _MemoryWriter(KVWriter):
         pass
 
 
-def _timed(model: Any, generations: int, n_envs: int, n_steps: int) -> tuple[float, list[dict[str, Any]]]:
+def _attach_memory_logger(model: Any) -> _MemoryWriter:
     writer = _MemoryWriter()
     model.set_logger(Logger(folder=None, output_formats=[writer]))
-    model.learn(n_steps * n_envs)  # warm-up generation
-    writer.rows.clear()
-    start = time.perf_counter()
-    model.learn(generations * n_steps * n_envs, reset_num_timesteps=False)
-    return (time.perf_counter() - start) / generations, writer.rows
+    return writer
+
+
+def _instrument(model: Any) -> dict[str, list[float]]:
+    """Wrap ``collect_rollouts`` and ``train`` of this instance to record their CPU seconds."""
+    times: dict[str, list[float]] = {"collect": [], "train": []}
+    collect, train = model.collect_rollouts, model.train
+
+    def timed_collect(*args: Any, **kwargs: Any) -> bool:
+        start = time.process_time()
+        out = collect(*args, **kwargs)
+        times["collect"].append(time.process_time() - start)
+        return out
+
+    def timed_train() -> None:
+        start = time.process_time()
+        train()
+        times["train"].append(time.process_time() - start)
+
+    model.collect_rollouts, model.train = timed_collect, timed_train
+    return times
+
+
+def _one_generation(model: Any, n_envs: int, n_steps: int) -> tuple[float, float]:
+    """(wall seconds, process CPU seconds) of one generation. CPU time is the steadier
+    number on a shared machine: with one torch thread and Warp's serial CPU launches the
+    process does not run in parallel with itself."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    model.learn(n_steps * n_envs, reset_num_timesteps=False)
+    return time.perf_counter() - wall, time.process_time() - cpu
 
 
 def run_benchmark(worlds: int = 4, agents: int = 8, n_steps: int = 91, generations: int = 3,
                   branch_cap: float = 0.5, anchor: str | None = None, seed: int = 0,
                   hidden: int = 64, threads: int = 1) -> dict[str, Any]:
-    """Time both algorithms; returns a JSON-able summary (seconds per generation, branch
-    share, searches / teachers per generation)."""
+    """Time both algorithms; returns a JSON-able summary (median seconds per generation,
+    branch share, searches / teachers per generation).
+
+    Generations alternate between the two algorithms (PPO, CounterPlay, PPO, ...) so that
+    load from other processes on a shared machine hits both alike.
+    """
     from sb3_contrib import RecurrentPPO
 
     from cpalgo.counterplay.algorithm import CounterPlay
@@ -59,26 +89,50 @@ def run_benchmark(worlds: int = 4, agents: int = 8, n_steps: int = 91, generatio
     th.set_num_threads(threads)
     common = dict(n_steps=n_steps, batch_size=n_steps * 8, n_epochs=2, seed=seed, device="cpu",
                   policy_kwargs=dict(lstm_hidden_size=hidden, net_arch=[hidden]))
-    env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
-    ppo = RecurrentPPO("MlpLstmPolicy", env, **common)
-    t_ppo, _ = _timed(ppo, generations, env.num_envs, n_steps)
-
-    env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
-    cp = CounterPlay("MlpLstmPolicy", env, branch_cap=branch_cap, **common)
+    env_ppo = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
+    ppo = RecurrentPPO("MlpLstmPolicy", env_ppo, **common)
+    env_cp = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
+    cp = CounterPlay("MlpLstmPolicy", env_cp, branch_cap=branch_cap, **common)
     if anchor is not None:
+        ppo.set_parameters(anchor, exact_match=False, device="cpu")
         cp.set_parameters(anchor, exact_match=False, device="cpu")
-    t_cp, rows = _timed(cp, generations, env.num_envs, n_steps)
+    _attach_memory_logger(ppo)
+    writer = _attach_memory_logger(cp)
+    n_envs = env_cp.num_envs
+    ppo.learn(n_steps * n_envs)  # warm-up generation (module loads, branch simulator build)
+    cp.learn(n_steps * n_envs)
+    writer.rows.clear()
+    parts_ppo, parts_cp = _instrument(ppo), _instrument(cp)
+    t_ppo, t_cp, c_ppo, c_cp = [], [], [], []
+    for _ in range(generations):
+        wall, cpu = _one_generation(ppo, n_envs, n_steps)
+        t_ppo.append(wall)
+        c_ppo.append(cpu)
+        wall, cpu = _one_generation(cp, n_envs, n_steps)
+        t_cp.append(wall)
+        c_cp.append(cpu)
+    rows = writer.rows
 
     def per_gen(key: str) -> float:
         vals = [float(r[key]) for r in rows if key in r]
         return float(np.mean(vals)) if vals else float("nan")
 
     return {
-        "worlds": worlds, "agents": agents, "n_envs": env.num_envs, "n_steps": n_steps,
+        "worlds": worlds, "agents": agents, "n_envs": n_envs, "n_steps": n_steps,
         "generations": generations, "branch_cap": branch_cap, "anchor": anchor, "torch_threads": threads,
-        "recurrent_ppo_s_per_generation": t_ppo,
-        "counterplay_s_per_generation": t_cp,
-        "slowdown": t_cp / t_ppo,
+        "recurrent_ppo_s_per_generation": float(np.median(t_ppo)),
+        "counterplay_s_per_generation": float(np.median(t_cp)),
+        "recurrent_ppo_s_all": t_ppo,
+        "counterplay_s_all": t_cp,
+        "recurrent_ppo_cpu_s_per_generation": float(np.median(c_ppo)),
+        "counterplay_cpu_s_per_generation": float(np.median(c_cp)),
+        "recurrent_ppo_cpu_s_collect": float(np.median(parts_ppo["collect"])),
+        "recurrent_ppo_cpu_s_train": float(np.median(parts_ppo["train"])),
+        "counterplay_cpu_s_collect_and_search": float(np.median(parts_cp["collect"])),
+        "counterplay_cpu_s_train": float(np.median(parts_cp["train"])),
+        "counterplay_cpu_s_search": per_gen("counterplay/search_cpu_s"),
+        "slowdown_wall": float(np.median(t_cp) / np.median(t_ppo)),
+        "slowdown_cpu": float(np.median(c_cp) / np.median(c_ppo)),
         "branch_share": per_gen("counterplay/branch_share"),
         "failures_per_generation": per_gen("counterplay/failures"),
         "searches_per_generation": per_gen("counterplay/searches"),
