@@ -17,11 +17,11 @@ Contents (S road segments, L log rows = all agents of the pool, T = 91):
     within ``road_radius`` + half the cell diagonal, sorted by that distance. An agent
     keeps those within ``road_radius`` of itself, in list order: its M road segments are
     the nearest ones up to the cell size (exact ranking is by distance to the cell centre);
-  - ``lane``: every lane segment within ``lane_radius`` of some point of the cell, so the
-    nearest lane within ``lane_radius`` of any point of the cell is exact;
+  - ``lane``: every lane segment within ``lane_radius`` of the cell (exact square-to-segment
+    distance), so the nearest lane within ``lane_radius`` of any point of the cell is exact;
   - ``edge``: every road-edge segment within reach of any box centred in the cell, including
     the corner paths of the last step (agent half-diagonal x ``box_scale`` + one step of
-    motion), so the swept off-road test is exact;
+    motion, from the cell), so the swept off-road test is exact;
 
 * all logged trajectories of the pool (replay) and each agent's compressed logged path
   (valid points only, cumulative arc length, logged heading; IDM drives along it and
@@ -135,6 +135,39 @@ def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.nd
     t = np.clip((ap * ab[None]).sum(-1) / ab2[None], 0.0, 1.0)
     d = ap - t[..., None] * ab[None]
     return np.sqrt((d * d).sum(-1))
+
+
+def rect_segment_distance(centres: np.ndarray, half: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance between axis-aligned squares (centres (C, 2), half side ``half``) and
+    segments a-b (S, 2): (C, S) float64, m (0 where they intersect)."""
+    c = centres.astype(np.float64)[:, None, :]
+    a = a.astype(np.float64)[None]
+    b = b.astype(np.float64)[None]
+    # segment vs square: clip the segment to the square (Liang-Barsky); hit -> distance 0
+    d = b - a
+    lo_t = np.zeros(np.broadcast_shapes(c.shape[:2], a.shape[:2]))
+    hi_t = np.ones_like(lo_t)
+    hit = np.ones_like(lo_t, bool)
+    for k in range(2):
+        p0 = a[..., k] - c[..., k]
+        dk = np.broadcast_to(d[..., k], lo_t.shape)
+        par = np.abs(dk) < 1e-12
+        hit &= ~(par & (np.abs(p0) > half))
+        safe = np.where(par, 1.0, dk)
+        t1, t2 = (-half - p0) / safe, (half - p0) / safe
+        lo_t = np.where(par, lo_t, np.maximum(lo_t, np.minimum(t1, t2)))
+        hi_t = np.where(par, hi_t, np.minimum(hi_t, np.maximum(t1, t2)))
+    hit &= lo_t <= hi_t
+    # otherwise the closest pair involves an endpoint or a square corner
+    def point_square(p):
+        q = np.maximum(np.abs(p - c) - half, 0.0)
+        return np.sqrt((q * q).sum(-1))
+    dist = np.minimum(point_square(a), point_square(b))
+    for sx in (-half, half):
+        for sy in (-half, half):
+            corner = centres.astype(np.float64) + np.array([sx, sy])
+            dist = np.minimum(dist, point_segment_distance(corner, a[0], b[0]))
+    return np.where(hit, 0.0, dist)
 
 
 def scenario_segments(sc: Scenario, tol: float, max_len: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -321,8 +354,8 @@ class Model:
                     if ids.size == 0:
                         rows.extend(np.zeros(0, np.int64) for _ in range(cc.shape[0]))
                         continue
-                    d = point_segment_distance(cc, a[ids], b[ids])
-                    rows.extend(ids[r] + seg_offset for r in _mask_to_rows(d <= radius + half_diag))
+                    d = rect_segment_distance(cc, 0.5 * info.cell, a[ids], b[ids])
+                    rows.extend(ids[r] + seg_offset for r in _mask_to_rows(d <= radius))
             seg_a.append(a)
             seg_b.append(b)
             seg_t.append(t)
@@ -470,5 +503,6 @@ class Model:
         }
 
 
-__all__ = ["Model", "ModelArrays", "simplify_polyline", "point_segment_distance", "scenario_segments",
+__all__ = ["Model", "ModelArrays", "simplify_polyline", "point_segment_distance", "rect_segment_distance",
+           "scenario_segments",
            "MAX_CELLS_PER_SCENARIO"]

@@ -118,6 +118,7 @@ class Simulator:
         self._sel_d2 = wp.zeros((W, A, kp), dtype=wp.float32, device=self.device)
         self._obs_clear = wp.zeros((W, A), dtype=wp.bool, device=self.device)
         self._obs_filled = wp.zeros((W, A, 2), dtype=wp.int32, device=self.device)
+        self._trig = wp.zeros((W, A), dtype=wp.vec2f, device=self.device)
         self._all_worlds = wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=self.device)
         self._build_slot_tables()
         self._make_views()
@@ -246,9 +247,12 @@ class Simulator:
     def _launch_obs(self, worlds_wp: wp.array, n: int, force: bool = True) -> None:
         if n == 0:
             return
+        wp.launch(K.observation.heading_trig_kernel, dim=(n, self.max_agents),
+                  inputs=[self.state, worlds_wp, self._trig], device=self.device)
         wp.launch(K.observation.observation_kernel, dim=(n, self.max_agents),
                   inputs=[self.state, self.model.arrays, self._params, worlds_wp, self._obs,
-                          self._sel_idx, self._sel_d2, self._obs_clear, self._obs_filled, int(force)], device=self.device)
+                          self._sel_idx, self._sel_d2, self._obs_clear, self._obs_filled, self._trig,
+                          int(force)], device=self.device)
 
     def _world_array(self, worlds: np.ndarray) -> wp.array:
         return wp.array(worlds.astype(np.int32), dtype=wp.int32, device=self.device)
@@ -331,9 +335,10 @@ class Simulator:
             rec(K.dynamics.dynamics_kernel, dim, [s, m, p, self.control.actions]),
             rec(K.metrics.events_kernel, dim, [s, m, p]),
             rec(K.metrics.finish_kernel, self.num_worlds, [s, p, self._all_worlds, 1]),
+            rec(K.observation.heading_trig_kernel, dim, [s, self._all_worlds, self._trig]),
             rec(K.observation.observation_kernel, dim,
                 [s, m, p, self._all_worlds, self._obs, self._sel_idx, self._sel_d2, self._obs_clear,
-                 self._obs_filled, 0]),
+                 self._obs_filled, self._trig, 0]),
         ]
         return idm, rest
 

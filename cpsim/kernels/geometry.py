@@ -208,19 +208,24 @@ def lane_query(m: ModelArrays, g: int, p: wp.vec2f, heading: float, radius: floa
     signed heading error rad).
     """
     best = int(-1)
-    best_d = float(radius)
+    best_d2 = float(radius * radius)
     best_side = float(0.0)
     cell = grid_cell(m, g, p, False)
     if cell >= 0:
         for k in range(m.lane_start[cell], m.lane_start[cell + 1]):
             sid = m.lane_items[k]
-            d, side = point_segment(p, m.seg_a[sid], m.seg_b[sid])
-            if d <= best_d and (best < 0 or d < best_d or sid < best):
+            ap = p - m.seg_a[sid]
+            u = m.seg_dir[sid]
+            t = wp.clamp(wp.dot(ap, u), 0.0, m.seg_len[sid])
+            dv = ap - t * u
+            d2 = wp.dot(dv, dv)
+            if d2 <= best_d2 and (best < 0 or d2 < best_d2 or sid < best):
                 best = sid
-                best_d = d
-                best_side = side
+                best_d2 = d2
+                best_side = cross2(u, ap)
     offset = float(0.0)
     err = float(0.0)
+    best_d = wp.sqrt(best_d2)
     if best >= 0:
         offset = best_d
         if best_side < 0.0:

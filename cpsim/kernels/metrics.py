@@ -60,10 +60,16 @@ def offroad_test(m: ModelArrays, g: int, p: wp.vec2f, h: float, prev_p: wp.vec2f
             b1 = box_corner_cs(p, c, s, half_len, half_wid, 1)
             b2 = box_corner_cs(p, c, s, half_len, half_wid, 2)
             b3 = box_corner_cs(p, c, s, half_len, half_wid, 3)
+            # axis-aligned bounds of both boxes: a cheap reject before the exact tests
+            lo = wp.min(wp.min(wp.min(a0, a1), wp.min(a2, a3)), wp.min(wp.min(b0, b1), wp.min(b2, b3)))
+            hi = wp.max(wp.max(wp.max(a0, a1), wp.max(a2, a3)), wp.max(wp.max(b0, b1), wp.max(b2, b3)))
             for q in range(first, last):
                 sid = m.edge_items[q]
                 ea = m.seg_a[sid]
                 eb = m.seg_b[sid]
+                if wp.max(ea[0], eb[0]) < lo[0] or wp.min(ea[0], eb[0]) > hi[0] \
+                        or wp.max(ea[1], eb[1]) < lo[1] or wp.min(ea[1], eb[1]) > hi[1]:
+                    continue
                 if segment_hits_box_cs(ea, eb, p, c, s, half_len, half_wid):
                     hit = True
                 elif moved:

@@ -22,10 +22,20 @@ ROAD_EDGE = wp.constant(2)
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def heading_trig_kernel(state: State, worlds: wp.array(dtype=wp.int32), trig: wp.array2d(dtype=wp.vec2f)):
+    """trig[w, a] = (cos, sin) of every heading (a pre-pass: partners reuse them, over (n, A))."""
+    i, a = wp.tid()
+    w = worlds[i]
+    h = state.heading[w, a]
+    trig[w, a] = wp.vec2f(wp.cos(h), wp.sin(h))
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def observation_kernel(state: State, model: ModelArrays, params: Params,
                        worlds: wp.array(dtype=wp.int32), obs: wp.array3d(dtype=wp.float32),
                        sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32),
-                       obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32), force: int):
+                       obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32),
+                       trig: wp.array2d(dtype=wp.vec2f), force: int):
     """Write obs[w, a, :] for the worlds listed in ``worlds`` (launch over (len(worlds), A)).
 
     Absent agents observe zeros; ``obs_clear`` remembers rows already zeroed so empty and
@@ -55,9 +65,9 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
             prev_road = filled[w, a, 1]
     obs_clear[w, a] = False
     p = state.pos[w, a]
-    h = state.heading[w, a]
-    c = wp.cos(h)
-    s = wp.sin(h)
+    cs = trig[w, a]
+    c = cs[0]
+    s = cs[1]
     vel = state.vel[w, a]
     size = state.size[w, a]
     # ---------------------------------------------------------------- ego
@@ -132,13 +142,13 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
         base = op + k * PF
         j = sel_idx[w, a, k]
         rel = to_local(state.pos[w, j] - p, c, s)
-        dh = state.heading[w, j] - h
+        cj = trig[w, j]
         rv = to_local(state.vel[w, j] - vel, c, s)
         sz = state.size[w, j]
         obs[w, a, base + 0] = rel[0] * inv_r
         obs[w, a, base + 1] = rel[1] * inv_r
-        obs[w, a, base + 2] = wp.cos(dh)
-        obs[w, a, base + 3] = wp.sin(dh)
+        obs[w, a, base + 2] = cj[0] * c + cj[1] * s  # cos(h_j - h)
+        obs[w, a, base + 3] = cj[1] * c - cj[0] * s  # sin(h_j - h)
         obs[w, a, base + 4] = rv[0] / 20.0
         obs[w, a, base + 5] = rv[1] / 20.0
         obs[w, a, base + 6] = sz[0] / 10.0
@@ -193,4 +203,4 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
     filled[w, a, 1] = mcount
 
 
-__all__ = ["observation_kernel"]
+__all__ = ["observation_kernel", "heading_trig_kernel"]
