@@ -14,9 +14,8 @@ Contents (S road segments, L log rows = all agents of the pool, T = 91):
   (CSR, global segment ids):
 
   - ``obs``: the ``num_road`` segments whose midpoints are nearest to the cell centre and
-    within ``road_radius`` + half the cell diagonal, sorted by that distance. An agent
-    keeps those within ``road_radius`` of itself, in list order: its M road segments are
-    the nearest ones up to the cell size (exact ranking is by distance to the cell centre);
+    within ``road_radius`` + half the cell diagonal, sorted by that distance: an agent's M
+    observed road segments are this list (the nearest ones up to the cell size);
   - ``lane``: every lane segment within ``lane_radius`` of the cell (exact square-to-segment
     distance), so the nearest lane within ``lane_radius`` of any point of the cell is exact;
   - ``edge``: every road-edge segment within reach of any box centred in the cell, including

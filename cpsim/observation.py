@@ -18,8 +18,9 @@ partners (K x :data:`PARTNER_FEATURES` = 10)
     4-5 relative velocity (partner - ego, ego frame) / 20 m/s, 6 length / 10 m,
     7 width / 5 m, 8 pedestrian or cyclist (0/1), 9 present (1).
 road (M x :data:`ROAD_FEATURES` = 8)
-    up to M road segments within ``road_radius`` from the grid's candidate list (nearest
-    to the agent's cell centre first, see :mod:`cpsim.model`), zero-padded:
+    the agent's grid cell's candidate list: up to M road segments whose midpoints are
+    nearest to the cell centre, within ``road_radius`` + half the cell diagonal of it
+    (nearest first; see :mod:`cpsim.model`), zero-padded:
     0-1 midpoint / road_radius, 2-3 direction cos / sin in the ego frame,
     4 length / road_max_segment, 5 lane centreline (0/1), 6 road edge (0/1), 7 present (1).
 

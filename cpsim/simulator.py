@@ -117,7 +117,7 @@ class Simulator:
         self._sel_idx = wp.zeros((W, A, kp), dtype=wp.int32, device=self.device)
         self._sel_d2 = wp.zeros((W, A, kp), dtype=wp.float32, device=self.device)
         self._obs_clear = wp.zeros((W, A), dtype=wp.bool, device=self.device)
-        self._obs_filled = wp.zeros((W, A, 2), dtype=wp.int32, device=self.device)
+        self._obs_filled = wp.zeros((W, A, 3), dtype=wp.int32, device=self.device)
         self._trig = wp.zeros((W, A), dtype=wp.vec2f, device=self.device)
         self._all_worlds = wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=self.device)
         self._build_slot_tables()

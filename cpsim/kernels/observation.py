@@ -40,7 +40,8 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
 
     Absent agents observe zeros; ``obs_clear`` remembers rows already zeroed so empty and
     removed slots cost nothing on later steps, and ``filled[w, a]`` = (partners, road
-    segments) written last time, so only entries that were filled before are zeroed again.
+    segments, grid cell) written last time, so only entries that were filled before are
+    zeroed again and constant road features are kept while the agent stays in its cell.
     ``force`` rewrites whole rows (after a reset, restore or an external state edit).
     """
     i, a = wp.tid()
@@ -56,8 +57,9 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
     M = params.num_road
     prev_partners = K
     prev_road = M
+    was_clear = obs_clear[w, a]
     if force == 0:
-        if obs_clear[w, a]:
+        if was_clear:
             prev_partners = 0
             prev_road = 0
         else:
@@ -162,42 +164,43 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
         obs[w, a, op + k] = 0.0
     filled[w, a, 0] = n
     # ---------------------------------------------------------------- road
+    # The cell's candidate list (nearest midpoints to the cell centre, within road_radius +
+    # half the cell diagonal) is written in order. While the agent stays in the same cell the
+    # same segments sit in the same slots, so their constant features (length, type flags,
+    # presence) are already in place and only the ego-frame pose is rewritten.
     RF = params.road_features
     orr = params.obs_road
     mcount = int(0)
     if M > 0:
         g = state.scenario[w]
         cell = grid_cell(model, g, p, True)
-        Rr = params.road_radius
-        R2r = Rr * Rr
-        inv_rr = 1.0 / Rr
+        same_cell = force == 0 and filled[w, a, 2] == cell and not was_clear
+        first = model.obs_start[cell]
+        mcount = wp.min(model.obs_start[cell + 1] - first, M)
+        inv_rr = 1.0 / params.road_radius
         inv_len = 1.0 / params.road_max_segment
-        for q in range(model.obs_start[cell], model.obs_start[cell + 1]):
-            if mcount >= M:
-                break
-            sid = model.obs_items[q]
-            rel = model.seg_mid[sid] - p
-            if wp.dot(rel, rel) > R2r:
-                continue
-            loc = to_local(rel, c, s)
+        for q in range(mcount):
+            sid = model.obs_items[first + q]
+            loc = to_local(model.seg_mid[sid] - p, c, s)
             dl = to_local(model.seg_dir[sid], c, s)
-            t = model.seg_type[sid]
-            base = orr + mcount * RF
+            base = orr + q * RF
             obs[w, a, base + 0] = loc[0] * inv_rr
             obs[w, a, base + 1] = loc[1] * inv_rr
             obs[w, a, base + 2] = dl[0]
             obs[w, a, base + 3] = dl[1]
-            obs[w, a, base + 4] = model.seg_len[sid] * inv_len
-            lane = float(0.0)
-            if t == ROAD_LANE:
-                lane = 1.0
-            edge = float(0.0)
-            if t == ROAD_EDGE:
-                edge = 1.0
-            obs[w, a, base + 5] = lane
-            obs[w, a, base + 6] = edge
-            obs[w, a, base + 7] = 1.0
-            mcount += 1
+            if not same_cell:
+                t = model.seg_type[sid]
+                obs[w, a, base + 4] = model.seg_len[sid] * inv_len
+                lane = float(0.0)
+                if t == ROAD_LANE:
+                    lane = 1.0
+                edge = float(0.0)
+                if t == ROAD_EDGE:
+                    edge = 1.0
+                obs[w, a, base + 5] = lane
+                obs[w, a, base + 6] = edge
+                obs[w, a, base + 7] = 1.0
+        filled[w, a, 2] = cell
     for k in range(mcount * RF, prev_road * RF):
         obs[w, a, orr + k] = 0.0
     filled[w, a, 1] = mcount
