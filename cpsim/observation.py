@@ -24,7 +24,9 @@ road (M x :data:`ROAD_FEATURES` = 8)
     0-1 midpoint / road_radius, 2-3 direction cos / sin in the ego frame,
     4 length / road_max_segment, 5 lane centreline (0/1), 6 road edge (0/1), 7 present (1).
 
-Empty slots and removed agents observe all zeros.
+Empty slots and removed agents observe all zeros; so do scenery agents (neither driven by
+the policy nor controllable at reset: parked cars, pedestrians, agents without a task)
+unless ``SimConfig.observe_all`` is set.
 """
 
 from __future__ import annotations

@@ -133,11 +133,13 @@ class Simulator:
         other = int(CONTROLLER_NAMES[self.config.other_controller])
         self._slot_table = np.full((G, A), -1, np.int32)
         self._ctrl_table = np.full((G, A), int(Controller.NONE), np.int32)
+        self._task_table = np.zeros((G, A), bool)
         for g in range(G):
             order = self.model.slot_order[g][:A]
             ctrl = self.model.slot_controllable[g][:A]
             self._slot_table[g, :order.size] = order
             self._ctrl_table[g, :order.size] = np.where(ctrl, default, other)
+            self._task_table[g, :order.size] = ctrl
 
     def _make_views(self) -> None:
         s = self.state
@@ -160,6 +162,7 @@ class Simulator:
         self.steer = t(s.steer)
         self.velocity = t(s.vel)
         self.agent_index = t(s.agent_index)
+        self.task_agent = t(s.task_agent)
         self.world_scenario = t(s.scenario)
         self.size = t(s.size)
         self.goal = t(s.goal)
@@ -303,6 +306,7 @@ class Simulator:
                           wp.array(scen, dtype=wp.int32, device=dev),
                           wp.array(self._slot_table[scen], dtype=wp.int32, device=dev),
                           wp.array(self._ctrl_table[scen], dtype=wp.int32, device=dev),
+                          wp.array(self._task_table[scen], dtype=wp.bool, device=dev),
                           wp.array(cond, dtype=wp.float32, device=dev)], device=dev)
         self._launch_obs(w_wp, n)
         self._refresh_has_idm()

@@ -42,6 +42,7 @@ class State:
     agent_index: wp.array2d(dtype=wp.int32)     # scenario agent index (-1 empty slot)
     agent_row: wp.array2d(dtype=wp.int32)       # row in the model's log arrays (-1 empty)
     controller: wp.array2d(dtype=wp.int32)      # Controller
+    task_agent: wp.array2d(dtype=wp.bool)       # controllable at reset (vehicle with a task)
     alive: wp.array2d(dtype=wp.bool)            # present and not removed
     present: wp.array2d(dtype=wp.bool)          # present after dynamics, before events (scratch)
     finished: wp.array2d(dtype=wp.bool)         # the agent's episode ended (done was emitted)

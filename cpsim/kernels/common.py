@@ -71,6 +71,7 @@ class Params:
     obs_road: int           # first index of the road block
     partner_features: int
     road_features: int
+    observe_all: int        # 1: every alive agent is observed; 0: POLICY and task agents only
 
 
 def make_params(config: SimConfig, layout) -> Params:
@@ -105,6 +106,7 @@ def make_params(config: SimConfig, layout) -> Params:
     p.obs_road = int(layout.road.start)
     p.partner_features = int(layout.partner_features)
     p.road_features = int(layout.road_features)
+    p.observe_all = int(bool(config.observe_all))
     return p
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import warp as wp
 
 from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
-from cpsim.kernels.common import KERNEL_MODULE, KERNEL_OPTIONS, VEHICLE, Params
+from cpsim.kernels.common import KERNEL_MODULE, KERNEL_OPTIONS, POLICY, VEHICLE, Params
 from cpsim.kernels.geometry import grid_cell, to_local
 from cpsim.model import ModelArrays
 from cpsim.state import State
@@ -38,7 +38,8 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
                        trig: wp.array2d(dtype=wp.vec2f), force: int):
     """Write obs[w, a, :] for the worlds listed in ``worlds`` (launch over (len(worlds), A)).
 
-    Absent agents observe zeros; ``obs_clear`` remembers rows already zeroed so empty and
+    Observed are alive agents driven by the policy or holding a task (``task_agent``), or
+    every alive agent with ``observe_all``; the others observe zeros; ``obs_clear`` remembers rows already zeroed so empty and
     removed slots cost nothing on later steps, and ``filled[w, a]`` = (partners, road
     segments, grid cell) written last time, so only entries that were filled before are
     zeroed again and constant road features are kept while the agent stays in its cell.
@@ -47,7 +48,9 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
     i, a = wp.tid()
     w = worlds[i]
     D = params.obs_dim
-    if not state.alive[w, a]:
+    observed = state.alive[w, a] and (params.observe_all != 0 or state.controller[w, a] == POLICY
+                                      or state.task_agent[w, a])
+    if not observed:
         if force != 0 or not obs_clear[w, a]:
             for k in range(D):
                 obs[w, a, k] = 0.0

@@ -34,6 +34,7 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
     dst.agent_index[d, a] = src.agent_index[s, a]
     dst.agent_row[d, a] = src.agent_row[s, a]
     dst.controller[d, a] = src.controller[s, a]
+    dst.task_agent[d, a] = src.task_agent[s, a]
     dst.alive[d, a] = src.alive[s, a]
     dst.present[d, a] = src.present[s, a]
     dst.finished[d, a] = src.finished[s, a]
@@ -81,9 +82,11 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.array(dtype=wp.int32),
                  scenario: wp.array(dtype=wp.int32), agent_local: wp.array2d(dtype=wp.int32),
-                 controllers: wp.array2d(dtype=wp.int32), conditions: wp.array3d(dtype=wp.float32)):
+                 controllers: wp.array2d(dtype=wp.int32), task_agent: wp.array2d(dtype=wp.bool),
+                 conditions: wp.array3d(dtype=wp.float32)):
     """Initialise world worlds[i] with scenario scenario[i]; slot a holds scenario agent
-    agent_local[i, a] (-1 empty) driven by controllers[i, a] (over (n, A))."""
+    agent_local[i, a] (-1 empty) driven by controllers[i, a]; task_agent[i, a] marks the
+    controllable agents (over (n, A))."""
     i, a = wp.tid()
     w = worlds[i]
     g = scenario[i]
@@ -105,6 +108,7 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
     state.agent_index[w, a] = local
     state.agent_row[w, a] = row
     state.controller[w, a] = ctrl
+    state.task_agent[w, a] = task_agent[i, a] and local >= 0
     for f in range(conditions.shape[2]):
         state.conditions[w, a, f] = conditions[i, a, f]
     occupied = row >= 0

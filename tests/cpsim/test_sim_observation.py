@@ -166,3 +166,20 @@ def test_incremental_observation_equals_recomputed_from_scratch():
         if done.any():
             sim.reset(worlds=np.flatnonzero(done))
     assert (sim.metrics["steps_alive"] > 0).any()
+
+
+def test_scenery_agents_are_not_observed_unless_observe_all():
+    sc = make_scenario([agent(0.0, 0.0, speed=5.0, goal=(80.0, 0.0)),
+                        agent(10.0, LANE_WIDTH, speed=5.0, goal=(90.0, LANE_WIDTH)),   # task agent
+                        agent(20.0, 0.0),                                              # parked car
+                        agent(5.0, 8.0, kind=cpsim.AgentType.PEDESTRIAN, speed=1.0, goal=(5.0, 20.0))])
+    for observe_all in (False, True):
+        sim = cpsim.Simulator([sc], num_worlds=1, max_agents=4, seed=0, config={"observe_all": observe_all})
+        sim.reset(conditions=NORMAL)
+        sim.set_controllers(np.array([Controller.POLICY, Controller.REPLAY, Controller.REPLAY, Controller.REPLAY]))
+        sim.step(np.full((1, 4), 7))
+        assert sim.task_agent[0].tolist() == [True, True, False, False]
+        rows = np.abs(sim.obs[0].numpy()).sum(1) > 0
+        assert rows.tolist() == [True, True, observe_all, observe_all]
+        # scenery is still visible to the others as partners
+        assert sim.obs_layout.split(sim.obs)["partners"][0, 0, :, -1].sum().item() == 3
