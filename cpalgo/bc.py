@@ -4,10 +4,15 @@ Data: the training pool's logs. Every agent is put on log replay; at each step t
 simulator's observation of every controllable vehicle whose log is valid at ``t`` and
 ``t + H`` is a sample, and its label is the discrete action (default: the 12-action
 jerk set) that, held for ``H`` steps (default 5, 0.5 s), best reproduces the logged state
-``H`` steps ahead from the agent's current simulator state. The label is found with the simulator's own dynamics: the current state of the
-chunk's worlds is restored into a probe simulator holding one copy per action
-(one-to-many :meth:`cpsim.Simulator.restore`), every copy steps with its action, and the
-action whose next pose is closest to the log wins (position error plus heading and speed
+``H`` steps ahead from the agent's current simulator state. A second pass (``mode="track"``,
+on by default in the command) drives the controllable agents with those labels plus
+random actions, so the data also covers states off the log, labelled with the action that
+returns to it (plain behaviour cloning otherwise drifts off the road in closed loop).
+
+The label is found with the simulator's own dynamics: the current state of the chunk's
+worlds is restored into a probe simulator holding one copy per action (one-to-many
+:meth:`cpsim.Simulator.restore`), every copy holds its action for ``H`` steps, and the
+action whose pose is then closest to the log wins (position error plus heading and speed
 errors scaled to metres). No Python loop over agents or worlds.
 
 Model: a small MLP (torch) over the observation with the condition slice zeroed (traffic
@@ -43,6 +48,8 @@ _POLICY, _REPLAY = 0, 1
 #: before they are added to the position error when choosing the label.
 HEADING_SCALE_M = 4.0
 SPEED_SCALE_S = 0.1
+#: Weight of the lateral position error relative to the longitudinal one.
+LATERAL_WEIGHT = 2.0
 
 
 # ============================================================================ model
@@ -176,17 +183,48 @@ def _padded_logs(scenarios: Sequence[Any]) -> tuple[np.ndarray, ...]:
     return xy, heading, speed, valid, ctrl
 
 
-def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32, sim_config: Any = None,
-            seed: int = 0, progress: bool = False, lookahead: int = 5) -> BCData:
-    """Log-replay observations and best-reproducing action labels (see module docstring).
+COLLECT_MODES = ("replay", "track", "both")
 
-    ``lookahead``: the candidate action is held for this many steps and compared with the
-    log that many steps ahead (one step of jerk moves a car by millimetres, too little to
-    tell actions apart; 0.5 s separates them by decimetres). Samples need a valid log at
-    ``t`` and ``t + lookahead``.
+
+def _neutral_action(cfg: Any) -> int:
+    """Index of the zero-jerk (jerk model) / zero-accel, zero-steer (classic) action."""
+    from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER, JERK_LAT, JERK_LONG
+
+    if cfg.dynamics == "jerk":
+        return int(np.argmin(np.abs(JERK_LONG))) * JERK_LAT.size + int(np.argmin(np.abs(JERK_LAT)))
+    return int(np.argmin(np.abs(CLASSIC_ACCEL))) * CLASSIC_STEER.size + int(np.argmin(np.abs(CLASSIC_STEER)))
+
+
+def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32, sim_config: Any = None,
+            seed: int = 0, progress: bool = False, lookahead: int = 5, mode: str = "replay",
+            noise: float = 0.3) -> BCData:
+    """Observations and best-reproducing action labels (see module docstring).
+
+    Args:
+        lookahead: the candidate action is held for this many steps and compared with the
+            log that many steps ahead (one step of jerk moves a car by millimetres, too
+            little to tell actions apart; 0.5 s separates them by decimetres). Samples need
+            a valid log at ``t`` and ``t + lookahead``.
+        mode: ``replay``: every agent follows its log (teacher forcing; observations are
+            exactly the logged situations). ``track``: controllable agents drive with the
+            label itself (the action that best returns to the log), replaced by a uniformly
+            random action with probability ``noise``; the observations then include
+            states off the log whose labels steer back to it (DART-style noise injection
+            against the compounding errors of plain behaviour cloning). ``both``: the two
+            passes over the same scenarios.
+        noise: random-action probability of the ``track`` mode.
     """
+    if mode not in COLLECT_MODES:
+        raise ValueError(f"mode: unknown collection mode {mode!r}; accepted: {list(COLLECT_MODES)}")
     if lookahead < 1:
         raise ValueError(f"lookahead: must be >= 1, got {lookahead}")
+    if not 0.0 <= noise <= 1.0:
+        raise ValueError(f"noise: must lie in [0, 1], got {noise}")
+    if mode == "both":
+        parts = [collect(scenarios, num_worlds, max_agents, sim_config, seed, progress, lookahead, m, noise)
+                 for m in ("replay", "track")]
+        return BCData(*(np.concatenate([getattr(p, f.name) for p in parts])
+                        for f in dataclasses.fields(BCData)))
     import cpsim
     from cpsim.config import SimConfig
 
@@ -204,6 +242,8 @@ def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32
     horizon = int(min(cfg.episode_steps, scenarios[0].num_steps - 1 - H))
     if horizon < 1:
         raise ValueError(f"lookahead: {H} leaves no step of the logs to label")
+    rng = np.random.default_rng(seed)
+    neutral = _neutral_action(cfg)
     source = np.repeat(np.arange(W), K)  # probe world i copies chunk world i // K
     probe_actions = np.broadcast_to(np.tile(np.arange(K), W)[:, None], (W * K, A)).astype(np.int64)
     all_worlds = np.arange(W)
@@ -212,43 +252,64 @@ def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32
         idx = np.arange(start, min(start + W, len(scenarios)))
         scen_index = np.concatenate([idx, np.full(W - idx.size, idx[0])])
         sim.reset(scenario_index=scen_index)
-        sim.set_controllers(np.full((W, A), _REPLAY, np.int32))
         agent = _np(sim.agent_index).copy()
         a_safe = np.where(agent >= 0, agent, log_xy.shape[1] - 1)
         s_idx = scen_index[:, None]
         usable_world = np.zeros(W, bool)
         usable_world[: idx.size] = True
+        controllable = (agent >= 0) & log_ctrl[s_idx, a_safe]
+        tracked = mode == "track"
+        sim.set_controllers(np.where(controllable & tracked, _POLICY, _REPLAY).astype(np.int32))
         for t in range(horizon):
-            ok = (agent >= 0) & log_ctrl[s_idx, a_safe] & log_valid[s_idx, a_safe, t] \
-                & log_valid[s_idx, a_safe, t + H] & _np(sim.alive) & usable_world[:, None]
+            ok = controllable & log_valid[s_idx, a_safe, t] & log_valid[s_idx, a_safe, t + H] \
+                & _np(sim.alive) & usable_world[:, None]
+            actions = np.full((W, A), neutral, np.int64)
             if ok.any():
                 snap = sim.snapshot(all_worlds)
                 probe.restore(snap, np.arange(W * K), source=source)
-                probe.set_controllers(np.full((W * K, A), _POLICY, np.int32))
-                for _ in range(H):
+                # only the labelled agents take the candidate action; everyone else keeps
+                # its controller (log replay stays log replay)
+                ctrl = np.where(ok, _POLICY, _np(sim.controllers)).astype(np.int32)
+                probe.set_controllers(np.repeat(ctrl, K, axis=0))
+                # cost summed over the held steps: an action that overshoots and comes
+                # back is worse than one that stays near the log all along
+                cost = np.zeros((W, K, A))
+                for k in range(1, H + 1):
                     probe.step(probe_actions)
-                pxy = _np(probe.xy).reshape(W, K, A, 2)
-                ph = _np(probe.heading).reshape(W, K, A)
-                pv = _np(probe.speed).reshape(W, K, A)
-                txy = log_xy[s_idx, a_safe, t + H]  # (W, A, 2)
-                th_ = log_h[s_idx, a_safe, t + H]
-                tv = log_v[s_idx, a_safe, t + H]
-                dpos = np.linalg.norm(pxy - txy[:, None], axis=-1)
-                dh = np.abs((ph - th_[:, None] + np.pi) % (2 * np.pi) - np.pi)
-                dv = np.abs(pv - tv[:, None])
-                cost = dpos + HEADING_SCALE_M * dh + SPEED_SCALE_S * dv  # (W, K, A)
+                    pxy = _np(probe.xy).reshape(W, K, A, 2)
+                    ph = _np(probe.heading).reshape(W, K, A)
+                    pv = _np(probe.speed).reshape(W, K, A)
+                    tk = np.minimum(t + k, t + H)
+                    ok_k = log_valid[s_idx, a_safe, tk][:, None]
+                    txy = log_xy[s_idx, a_safe, tk][:, None]  # (W, 1, A, 2)
+                    th_ = log_h[s_idx, a_safe, tk][:, None]
+                    tv = log_v[s_idx, a_safe, tk][:, None]
+                    diff = pxy - txy
+                    # lateral error (across the logged heading) weighs more than the
+                    # longitudinal one, which is mostly a matter of timing
+                    lon = diff[..., 0] * np.cos(th_) + diff[..., 1] * np.sin(th_)
+                    lat = -diff[..., 0] * np.sin(th_) + diff[..., 1] * np.cos(th_)
+                    dh = np.abs((ph - th_ + np.pi) % (2 * np.pi) - np.pi)
+                    step_cost = np.abs(lon) + LATERAL_WEIGHT * np.abs(lat) + HEADING_SCALE_M * dh \
+                        + SPEED_SCALE_S * np.abs(pv - tv)
+                    cost += np.where(ok_k, step_cost, 0.0)
+                dpos = np.linalg.norm(diff, axis=-1)  # (W, K, A) at t + H
                 best = cost.argmin(1)  # (W, A)
                 obs = _np(sim.obs)
                 obs_out.append(obs[ok].astype(np.float32))
                 act_out.append(best[ok].astype(np.int64))
                 err_out.append(np.take_along_axis(dpos, best[:, None], 1)[:, 0][ok].astype(np.float32))
                 sc_out.append(np.broadcast_to(s_idx, ok.shape)[ok].astype(np.int64))
-            sim.step(np.zeros((W, A), np.int64))
+                actions = np.where(ok, best, neutral)
+            if tracked:
+                explore = rng.random((W, A)) < noise
+                actions = np.where(explore, rng.integers(0, K, (W, A)), actions)
+            sim.step(actions)
         if progress:
-            print(f"collected {min(start + W, len(scenarios))}/{len(scenarios)} scenarios, "
+            print(f"[{mode}] collected {min(start + W, len(scenarios))}/{len(scenarios)} scenarios, "
                   f"{sum(a.size for a in act_out)} samples", file=sys.stderr)
     if not act_out:
-        raise ValueError("scenarios: no controllable vehicle with two consecutive valid log steps")
+        raise ValueError("scenarios: no controllable vehicle with valid log steps to label")
     return BCData(np.concatenate(obs_out), np.concatenate(act_out), np.concatenate(err_out),
                   np.concatenate(sc_out))
 
@@ -346,6 +407,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--hidden", type=int, nargs="+", default=[128, 128])
     p.add_argument("--batch-size", type=int, default=512)
     p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--weight-decay", type=float, default=1e-5)
+    p.add_argument("--mode", choices=COLLECT_MODES, default="both",
+                   help="replay: log-replay observations only; track: noisy log tracking; both")
+    p.add_argument("--noise", type=float, default=0.3, help="random-action probability when tracking")
+    p.add_argument("--lookahead", type=int, default=5, help="label lookahead, steps")
     args = p.parse_args(argv)
     if not str(args.out).endswith(".pt"):
         p.error("--out must end in .pt")
@@ -365,7 +431,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         scenarios = list(loaded[0] if isinstance(loaded, tuple) else loaded)[: args.scenarios]
     from cpsim.config import SimConfig
 
-    data = collect(scenarios, args.worlds, args.max_agents, seed=args.seed, progress=True)
+    data = collect(scenarios, args.worlds, args.max_agents, seed=args.seed, progress=True,
+                   lookahead=args.lookahead, mode=args.mode, noise=args.noise)
     t1 = time.perf_counter()
     import cpsim
 
@@ -374,7 +441,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     cond = (int(sl.start), int(sl.stop))
     model, metrics = train(data, SimConfig().num_actions, cond,
                            TrainConfig(hidden=tuple(args.hidden), epochs=args.epochs,
-                                       batch_size=args.batch_size, lr=args.lr, seed=args.seed), log=True)
+                                       batch_size=args.batch_size, lr=args.lr,
+                                       weight_decay=args.weight_decay, seed=args.seed), log=True)
     metrics.update({"scenarios": len(scenarios), "pool": args.pool, "seed": args.seed,
                     "collect_seconds": t1 - t0, "train_seconds": time.perf_counter() - t1,
                     "command": "python -m cpalgo.bc " + " ".join(argv if argv is not None else sys.argv[1:])})
