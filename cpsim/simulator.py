@@ -53,12 +53,6 @@ class Snapshot:
     max_agents: int
     device: str
 
-    def refresh(self, worlds: Any = None) -> None:
-        """Recompute the observation of ``worlds`` from the current state (after editing the
-        state through the output views, e.g. to place agents in tests or tools)."""
-        w = self._worlds(worlds)
-        self._launch_obs(self._world_array(w), w.size)
-
     def state_dict(self) -> dict[str, np.ndarray]:
         """NumPy copies of every field (leading axis: snapshot world)."""
         return state_to_numpy(self.state)
@@ -96,6 +90,10 @@ class Simulator:
             raise ValueError(f"device: {device!r} is not available ({exc})") from None
         self.device = str(wp_device)
         self._torch_device = wp.device_to_torch(wp_device)
+        if wp_device.is_cuda:
+            # launch on torch's current stream so torch reads of the zero-copy outputs are
+            # ordered after the kernels that wrote them
+            wp.set_stream(wp.stream_from_torch(torch.cuda.current_stream(self._torch_device)), device=wp_device)
         K.load(self.device)
         if isinstance(scenarios, Model):
             if scenarios.config != self.config or scenarios.device != self.device:
@@ -124,6 +122,9 @@ class Simulator:
         self._make_views()
         self._has_idm = False
         self._step_launches = None
+        self._index_buffers: dict[int, wp.array] = {}
+        self._index_views: dict[int, torch.Tensor] = {}
+        self._arange: wp.array | None = None
         self.reset()
 
     # ------------------------------------------------------------------ setup
@@ -203,7 +204,8 @@ class Simulator:
             raise ValueError(f"{argument}: expected integer world indices, got dtype {arr.dtype}")
         if arr.size and (arr.min() < 0 or arr.max() >= self.num_worlds):
             raise ValueError(f"{argument}: world index out of range [0, {self.num_worlds})")
-        if not allow_duplicates and np.unique(arr).size != arr.size:
+        if not allow_duplicates and arr.size > 1 and (
+                len(set(arr.tolist())) if arr.size <= 64 else np.unique(arr).size) != arr.size:
             raise ValueError(f"{argument}: contains duplicate world indices")
         return arr.astype(np.int32)
 
@@ -257,11 +259,33 @@ class Simulator:
                           self._sel_idx, self._sel_d2, self._obs_clear, self._obs_filled, self._trig,
                           int(force)], device=self.device)
 
-    def _world_array(self, worlds: np.ndarray) -> wp.array:
-        return wp.array(worlds.astype(np.int32), dtype=wp.int32, device=self.device)
+    def _world_array(self, worlds: np.ndarray, slot: int = 0) -> wp.array:
+        """Index buffer ``slot`` holding ``worlds`` in its first entries (kernels launched over
+        len(worlds) read only those); reused across calls to avoid per-call allocations."""
+        n = worlds.size
+        buf = self._index_buffers.get(slot)
+        if buf is None or buf.shape[0] < n:
+            buf = wp.zeros(max(n, self.num_worlds), dtype=wp.int32, device=self.device)
+            self._index_buffers[slot] = buf
+            self._index_views[slot] = wp.to_torch(buf)
+        if n:
+            self._index_views[slot][:n].copy_(torch.from_numpy(np.ascontiguousarray(worlds, dtype=np.int32)))
+        return buf
 
-    def _refresh_has_idm(self) -> None:
-        self._has_idm = bool((self.controllers == int(Controller.IDM)).any())
+    def _arange_array(self, n: int) -> wp.array:
+        if self._arange is None or self._arange.shape[0] < n:
+            self._arange = wp.array(np.arange(max(n, self.num_worlds), dtype=np.int32), dtype=wp.int32,
+                                    device=self.device)
+        return self._arange
+
+    def _refresh_has_idm(self, worlds: np.ndarray | None = None) -> None:
+        """Whether a step must run the IDM kernel. With ``worlds``, only those worlds changed
+        (an IDM agent there switches it on; it stays on until the next full check)."""
+        if worlds is None:
+            self._has_idm = bool((self.controllers == int(Controller.IDM)).any())
+        elif not self._has_idm:
+            idx = torch.as_tensor(worlds.astype(np.int64), device=self._torch_device)
+            self._has_idm = bool((self.controllers[idx] == int(Controller.IDM)).any())
 
     # ------------------------------------------------------------------ public API
     def reset(self, worlds: Any = None, scenario_index: Any = None, conditions: Any = None) -> None:
@@ -309,7 +333,7 @@ class Simulator:
                           wp.array(self._task_table[scen], dtype=wp.bool, device=dev),
                           wp.array(cond, dtype=wp.float32, device=dev)], device=dev)
         self._launch_obs(w_wp, n)
-        self._refresh_has_idm()
+        self._refresh_has_idm(None if n == self.num_worlds else w)
 
     def step(self, actions: Any) -> None:
         """Advance every world by one decision. ``actions`` (W, A) (or (W*A,)) integer
@@ -410,8 +434,7 @@ class Simulator:
                             fingerprint=self.model.fingerprint, config=self.config,
                             max_agents=self.max_agents, device=self.device)
         wp.launch(K.snapshot.copy_worlds_kernel, dim=(n, self.max_agents),
-                  inputs=[self.state, snap.state, self._world_array(w),
-                          wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=self.device)],
+                  inputs=[self.state, snap.state, self._world_array(w), self._arange_array(n)],
                   device=self.device)
         return snap
 
@@ -455,10 +478,9 @@ class Simulator:
             return
         w_wp = self._world_array(w)
         wp.launch(K.snapshot.copy_worlds_kernel, dim=(n, self.max_agents),
-                  inputs=[snapshot.state, self.state,
-                          wp.array(src, dtype=wp.int32, device=self.device), w_wp], device=self.device)
+                  inputs=[snapshot.state, self.state, self._world_array(src, slot=1), w_wp], device=self.device)
         self._launch_obs(w_wp, n)
-        self._refresh_has_idm()
+        self._refresh_has_idm(w)
 
     def refresh(self, worlds: Any = None) -> None:
         """Recompute the observation of ``worlds`` from the current state (after editing the
