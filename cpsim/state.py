@@ -85,20 +85,13 @@ class State:
     at_fault: wp.array2d(dtype=wp.bool)
 
 
-#: Field name -> (per-agent trailing shape, warp dtype); per-world fields have agent=False.
+#: Fields with one entry per world (the others are per agent slot).
 _PER_WORLD = {"scenario": wp.int32, "step_count": wp.int32, "world_done": wp.bool}
 
 
 def state_field_names() -> tuple[str, ...]:
     """Every field of :class:`State`, in declaration order."""
     return tuple(State.vars.keys())
-
-
-def _field_spec(name: str) -> tuple[bool, tuple[int, ...], type]:
-    var = State.vars[name]
-    dtype = var.type.dtype
-    ndim = var.type.ndim
-    return name in _PER_WORLD, (ndim,), dtype
 
 
 def allocate_state(num_worlds: int, max_agents: int, device: str) -> State:
