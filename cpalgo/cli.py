@@ -108,7 +108,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     model = RecurrentPPO(recipe.policy, env, seed=args.seed, verbose=args.verbose,
                          tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
     out = Path(args.out)
-    ckpt = AtomicCheckpointCallback(save_freq=max(1, 50 * recipe.algo_kwargs.get("n_steps", 64)), path=out)
+    ckpt = AtomicCheckpointCallback(save_freq=max(1, 10 * recipe.algo_kwargs.get("n_steps", 64)), path=out)
     t0 = time.perf_counter()
     model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0

@@ -876,6 +876,10 @@ class CounterPlay(RecurrentPPO):
         if not self.counterfactual:
             return
         s = self._gen_stats
+        # running totals over every generation of this model (for summaries and reports)
+        totals = self.__dict__.setdefault("search_totals", {})
+        for key, value in s.items():
+            totals[key] = totals.get(key, 0) + value
         record = self.logger.record
         record("counterplay/failures", s["failures"])
         for name in ("collision", "offroad", "timeout"):
