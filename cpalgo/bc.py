@@ -20,9 +20,10 @@ does not read reward conditions). It is an SB3-compatible co-player:
 ``predict(obs, state, episode_start, deterministic) -> (actions, None)``, and is saved as
 a small ``.pt`` file (float16 weights).
 
-Command::
+Command (the shipped ``zoo/bc_traffic.pt``; its ``meta`` records the command and accuracies)::
 
-    python -m cpalgo.bc --out zoo/bc_traffic.pt --scenarios 200 --epochs 15
+    python -m cpalgo.bc --out zoo/bc_traffic.pt --scenarios 60 --worlds 30 --max-agents 32 \
+        --mode both --noise 0.2 --hidden 256 --weight-decay 1e-3 --epochs 8
 """
 
 from __future__ import annotations
@@ -121,6 +122,9 @@ class BCPolicy(nn.Module):
         os.close(fd)
         try:
             th.save(payload, tmp)
+            from cpalgo.evaluate.tables import umask_mode
+
+            os.chmod(tmp, umask_mode())
             os.replace(tmp, path)
         except BaseException:
             if os.path.exists(tmp):
@@ -197,7 +201,7 @@ def _neutral_action(cfg: Any) -> int:
 
 def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32, sim_config: Any = None,
             seed: int = 0, progress: bool = False, lookahead: int = 5, mode: str = "replay",
-            noise: float = 0.3) -> BCData:
+            noise: float = 0.2) -> BCData:
     """Observations and best-reproducing action labels (see module docstring).
 
     Args:
@@ -410,7 +414,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--weight-decay", type=float, default=1e-5)
     p.add_argument("--mode", choices=COLLECT_MODES, default="both",
                    help="replay: log-replay observations only; track: noisy log tracking; both")
-    p.add_argument("--noise", type=float, default=0.3, help="random-action probability when tracking")
+    p.add_argument("--noise", type=float, default=0.2, help="random-action probability when tracking")
     p.add_argument("--lookahead", type=int, default=5, help="label lookahead, steps")
     args = p.parse_args(argv)
     if not str(args.out).endswith(".pt"):

@@ -55,6 +55,9 @@ def save_figure(fig: "Figure", path: str | os.PathLike) -> Path:
     os.close(fd)
     try:
         fig.savefig(tmp, format="png", bbox_inches="tight")
+        from cpalgo.evaluate.tables import umask_mode
+
+        os.chmod(tmp, umask_mode())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -258,6 +258,13 @@ def _clean_nan(o: Any) -> Any:
 
 
 # ----------------------------------------------------------------------------- atomic writing
+def umask_mode(directory: bool = False) -> int:
+    """Permissions a plain ``open``/``mkdir`` would give (mkstemp/mkdtemp use 0600/0700)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return (0o777 if directory else 0o666) & ~mask
+
+
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` through a temp file in the same folder and ``os.replace``."""
     path = Path(path)
@@ -266,6 +273,7 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
+        os.chmod(tmp, umask_mode())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -291,6 +299,7 @@ class AtomicDir:
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"out: {self.out} exists and is not a folder")
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.tmp-", dir=parent))
+        os.chmod(self.tmp, umask_mode(directory=True))
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb) -> None:

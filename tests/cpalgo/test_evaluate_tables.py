@@ -143,3 +143,16 @@ def _scenario():
         log_valid=np.ones((3, T), bool), goal_xy=xy[:, -1], sizes=np.tile([4.5, 2.0], (3, 1)),
         agent_types=np.zeros(3), road_points=pts, road_offsets=np.array([0, 2, 4]),
         road_types=np.array([2, 0]), ego_index=0)
+
+
+def test_results_have_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    out = tmp_path / "res"
+    TB.write_results(out, [_result("anchor", 0.5, 1)], plots=True)
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o777 & ~mask
+    for p in out.iterdir():
+        assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask, p.name
