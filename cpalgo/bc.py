@@ -199,6 +199,136 @@ def _neutral_action(cfg: Any) -> int:
     return int(np.argmin(np.abs(CLASSIC_ACCEL))) * CLASSIC_STEER.size + int(np.argmin(np.abs(CLASSIC_STEER)))
 
 
+@dataclasses.dataclass
+class LabelledStep:
+    """One decision of one chunk of worlds in :func:`labelled_steps` (arrays are (W, A)).
+
+    ``obs`` (W, A, D) the observations before the decision; ``labels`` the best-reproducing
+    actions, meaningful where ``labelled``; ``actions`` what the agents then did (label,
+    random action or neutral); ``alive`` agents present; ``task_agents`` controllable
+    agents of real (not padding) worlds; ``rewards`` the step's conditioned rewards;
+    ``scenario`` (W,) pool indices; ``error_m`` the label's position error H steps ahead;
+    ``t`` the decision index and ``last`` whether it is the chunk's last decision.
+    """
+
+    t: int
+    last: bool
+    obs: np.ndarray
+    labels: np.ndarray
+    labelled: np.ndarray
+    actions: np.ndarray
+    alive: np.ndarray
+    task_agents: np.ndarray
+    rewards: np.ndarray
+    scenario: np.ndarray
+    error_m: np.ndarray
+
+
+def labelled_steps(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32, sim_config: Any = None,
+                   seed: int = 0, progress: bool = False, lookahead: int = 5, mode: str = "replay",
+                   noise: float = 0.2, full_horizon: bool = False):
+    """Yield a :class:`LabelledStep` per decision and chunk of ``num_worlds`` scenarios.
+
+    ``mode`` is ``replay`` or ``track`` (see :func:`collect`). With ``full_horizon`` the
+    chunk runs all ``episode_steps`` decisions (steps without a log ``lookahead`` ahead get
+    no label); otherwise it stops at the last labelable step.
+    """
+    if mode not in ("replay", "track"):
+        raise ValueError(f"mode: unknown collection mode {mode!r}; accepted: ['replay', 'track']")
+    if lookahead < 1:
+        raise ValueError(f"lookahead: must be >= 1, got {lookahead}")
+    if not 0.0 <= noise <= 1.0:
+        raise ValueError(f"noise: must lie in [0, 1], got {noise}")
+    import cpsim
+    from cpsim.config import SimConfig
+
+    scenarios = list(scenarios)
+    if not scenarios:
+        raise ValueError("scenarios: empty; behaviour cloning needs logs")
+    cfg = sim_config or SimConfig()
+    K = int(cfg.num_actions)
+    W = int(min(num_worlds, len(scenarios)))
+    sim = cpsim.Simulator(scenarios, num_worlds=W, max_agents=max_agents, config=cfg, seed=seed)
+    probe = cpsim.Simulator(sim.model, num_worlds=W * K, max_agents=max_agents, config=cfg, seed=seed)
+    A = int(sim.max_agents)
+    log_xy, log_h, log_v, log_valid, log_ctrl = _padded_logs(scenarios)
+    H = int(lookahead)
+    T_log = scenarios[0].num_steps
+    labelable = int(min(cfg.episode_steps, T_log - 1 - H))
+    if labelable < 1:
+        raise ValueError(f"lookahead: {H} leaves no step of the logs to label")
+    horizon = int(cfg.episode_steps) if full_horizon else labelable
+    rng = np.random.default_rng(seed)
+    neutral = _neutral_action(cfg)
+    source = np.repeat(np.arange(W), K)  # probe world i copies chunk world i // K
+    probe_actions = np.broadcast_to(np.tile(np.arange(K), W)[:, None], (W * K, A)).astype(np.int64)
+    all_worlds = np.arange(W)
+    tracked = mode == "track"
+    for start in range(0, len(scenarios), W):
+        idx = np.arange(start, min(start + W, len(scenarios)))
+        scen_index = np.concatenate([idx, np.full(W - idx.size, idx[0])])
+        sim.reset(scenario_index=scen_index)
+        agent = _np(sim.agent_index).copy()
+        a_safe = np.where(agent >= 0, agent, log_xy.shape[1] - 1)
+        s_idx = scen_index[:, None]
+        usable_world = np.zeros(W, bool)
+        usable_world[: idx.size] = True
+        controllable = (agent >= 0) & log_ctrl[s_idx, a_safe]
+        task_agents = controllable & usable_world[:, None]
+        sim.set_controllers(np.where(controllable & tracked, _POLICY, _REPLAY).astype(np.int32))
+        for t in range(horizon):
+            alive = _np(sim.alive).copy()
+            obs = _np(sim.obs).copy()
+            ok = np.zeros((W, A), bool)
+            if t < labelable:
+                ok = controllable & log_valid[s_idx, a_safe, t] & log_valid[s_idx, a_safe, t + H] \
+                    & alive & usable_world[:, None]
+            best = np.full((W, A), neutral, np.int64)
+            err = np.zeros((W, A), np.float32)
+            if ok.any():
+                snap = sim.snapshot(all_worlds)
+                probe.restore(snap, np.arange(W * K), source=source)
+                # only the labelled agents take the candidate action; everyone else keeps
+                # its controller (log replay stays log replay)
+                ctrl = np.where(ok, _POLICY, _np(sim.controllers)).astype(np.int32)
+                probe.set_controllers(np.repeat(ctrl, K, axis=0))
+                # cost summed over the held steps: an action that overshoots and comes
+                # back is worse than one that stays near the log all along
+                cost = np.zeros((W, K, A))
+                for k in range(1, H + 1):
+                    probe.step(probe_actions)
+                    pxy = _np(probe.xy).reshape(W, K, A, 2)
+                    ph = _np(probe.heading).reshape(W, K, A)
+                    pv = _np(probe.speed).reshape(W, K, A)
+                    tk = t + k
+                    ok_k = log_valid[s_idx, a_safe, tk][:, None]
+                    txy = log_xy[s_idx, a_safe, tk][:, None]  # (W, 1, A, 2)
+                    th_ = log_h[s_idx, a_safe, tk][:, None]
+                    tv = log_v[s_idx, a_safe, tk][:, None]
+                    diff = pxy - txy
+                    # lateral error (across the logged heading) weighs more than the
+                    # longitudinal one, which is mostly a matter of timing
+                    lon = diff[..., 0] * np.cos(th_) + diff[..., 1] * np.sin(th_)
+                    lat = -diff[..., 0] * np.sin(th_) + diff[..., 1] * np.cos(th_)
+                    dh = np.abs((ph - th_ + np.pi) % (2 * np.pi) - np.pi)
+                    step_cost = np.abs(lon) + LATERAL_WEIGHT * np.abs(lat) + HEADING_SCALE_M * dh \
+                        + SPEED_SCALE_S * np.abs(pv - tv)
+                    cost += np.where(ok_k, step_cost, 0.0)
+                dpos = np.linalg.norm(diff, axis=-1)  # (W, K, A) at t + H
+                best = np.where(ok, cost.argmin(1), neutral)  # (W, A)
+                err = np.take_along_axis(dpos, best[:, None], 1)[:, 0].astype(np.float32)
+            actions = best.copy()
+            if tracked:
+                explore = rng.random((W, A)) < noise
+                actions = np.where(explore, rng.integers(0, K, (W, A)), actions)
+            sim.step(actions)
+            yield LabelledStep(t=t, last=t == horizon - 1, obs=obs, labels=best, labelled=ok, actions=actions,
+                               alive=alive, task_agents=task_agents, rewards=_np(sim.reward).copy(),
+                               scenario=scen_index.copy(), error_m=err)
+        if progress:
+            print(f"[{mode}] labelled {min(start + W, len(scenarios))}/{len(scenarios)} scenarios", file=sys.stderr)
+
+
 def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32, sim_config: Any = None,
             seed: int = 0, progress: bool = False, lookahead: int = 5, mode: str = "replay",
             noise: float = 0.2) -> BCData:
@@ -220,98 +350,19 @@ def collect(scenarios: Sequence[Any], num_worlds: int = 32, max_agents: int = 32
     """
     if mode not in COLLECT_MODES:
         raise ValueError(f"mode: unknown collection mode {mode!r}; accepted: {list(COLLECT_MODES)}")
-    if lookahead < 1:
-        raise ValueError(f"lookahead: must be >= 1, got {lookahead}")
-    if not 0.0 <= noise <= 1.0:
-        raise ValueError(f"noise: must lie in [0, 1], got {noise}")
     if mode == "both":
         parts = [collect(scenarios, num_worlds, max_agents, sim_config, seed, progress, lookahead, m, noise)
                  for m in ("replay", "track")]
         return BCData(*(np.concatenate([getattr(p, f.name) for p in parts])
                         for f in dataclasses.fields(BCData)))
-    import cpsim
-    from cpsim.config import SimConfig
-
-    scenarios = list(scenarios)
-    if not scenarios:
-        raise ValueError("scenarios: empty; behaviour cloning needs logs")
-    cfg = sim_config or SimConfig()
-    K = int(cfg.num_actions)
-    W = int(min(num_worlds, len(scenarios)))
-    sim = cpsim.Simulator(scenarios, num_worlds=W, max_agents=max_agents, config=cfg, seed=seed)
-    probe = cpsim.Simulator(scenarios, num_worlds=W * K, max_agents=max_agents, config=cfg, seed=seed)
-    A = int(sim.max_agents)
-    log_xy, log_h, log_v, log_valid, log_ctrl = _padded_logs(scenarios)
-    H = int(lookahead)
-    horizon = int(min(cfg.episode_steps, scenarios[0].num_steps - 1 - H))
-    if horizon < 1:
-        raise ValueError(f"lookahead: {H} leaves no step of the logs to label")
-    rng = np.random.default_rng(seed)
-    neutral = _neutral_action(cfg)
-    source = np.repeat(np.arange(W), K)  # probe world i copies chunk world i // K
-    probe_actions = np.broadcast_to(np.tile(np.arange(K), W)[:, None], (W * K, A)).astype(np.int64)
-    all_worlds = np.arange(W)
     obs_out, act_out, err_out, sc_out = [], [], [], []
-    for start in range(0, len(scenarios), W):
-        idx = np.arange(start, min(start + W, len(scenarios)))
-        scen_index = np.concatenate([idx, np.full(W - idx.size, idx[0])])
-        sim.reset(scenario_index=scen_index)
-        agent = _np(sim.agent_index).copy()
-        a_safe = np.where(agent >= 0, agent, log_xy.shape[1] - 1)
-        s_idx = scen_index[:, None]
-        usable_world = np.zeros(W, bool)
-        usable_world[: idx.size] = True
-        controllable = (agent >= 0) & log_ctrl[s_idx, a_safe]
-        tracked = mode == "track"
-        sim.set_controllers(np.where(controllable & tracked, _POLICY, _REPLAY).astype(np.int32))
-        for t in range(horizon):
-            ok = controllable & log_valid[s_idx, a_safe, t] & log_valid[s_idx, a_safe, t + H] \
-                & _np(sim.alive) & usable_world[:, None]
-            actions = np.full((W, A), neutral, np.int64)
-            if ok.any():
-                snap = sim.snapshot(all_worlds)
-                probe.restore(snap, np.arange(W * K), source=source)
-                # only the labelled agents take the candidate action; everyone else keeps
-                # its controller (log replay stays log replay)
-                ctrl = np.where(ok, _POLICY, _np(sim.controllers)).astype(np.int32)
-                probe.set_controllers(np.repeat(ctrl, K, axis=0))
-                # cost summed over the held steps: an action that overshoots and comes
-                # back is worse than one that stays near the log all along
-                cost = np.zeros((W, K, A))
-                for k in range(1, H + 1):
-                    probe.step(probe_actions)
-                    pxy = _np(probe.xy).reshape(W, K, A, 2)
-                    ph = _np(probe.heading).reshape(W, K, A)
-                    pv = _np(probe.speed).reshape(W, K, A)
-                    tk = np.minimum(t + k, t + H)
-                    ok_k = log_valid[s_idx, a_safe, tk][:, None]
-                    txy = log_xy[s_idx, a_safe, tk][:, None]  # (W, 1, A, 2)
-                    th_ = log_h[s_idx, a_safe, tk][:, None]
-                    tv = log_v[s_idx, a_safe, tk][:, None]
-                    diff = pxy - txy
-                    # lateral error (across the logged heading) weighs more than the
-                    # longitudinal one, which is mostly a matter of timing
-                    lon = diff[..., 0] * np.cos(th_) + diff[..., 1] * np.sin(th_)
-                    lat = -diff[..., 0] * np.sin(th_) + diff[..., 1] * np.cos(th_)
-                    dh = np.abs((ph - th_ + np.pi) % (2 * np.pi) - np.pi)
-                    step_cost = np.abs(lon) + LATERAL_WEIGHT * np.abs(lat) + HEADING_SCALE_M * dh \
-                        + SPEED_SCALE_S * np.abs(pv - tv)
-                    cost += np.where(ok_k, step_cost, 0.0)
-                dpos = np.linalg.norm(diff, axis=-1)  # (W, K, A) at t + H
-                best = cost.argmin(1)  # (W, A)
-                obs = _np(sim.obs)
-                obs_out.append(obs[ok].astype(np.float32))
-                act_out.append(best[ok].astype(np.int64))
-                err_out.append(np.take_along_axis(dpos, best[:, None], 1)[:, 0][ok].astype(np.float32))
-                sc_out.append(np.broadcast_to(s_idx, ok.shape)[ok].astype(np.int64))
-                actions = np.where(ok, best, neutral)
-            if tracked:
-                explore = rng.random((W, A)) < noise
-                actions = np.where(explore, rng.integers(0, K, (W, A)), actions)
-            sim.step(actions)
-        if progress:
-            print(f"[{mode}] collected {min(start + W, len(scenarios))}/{len(scenarios)} scenarios, "
-                  f"{sum(a.size for a in act_out)} samples", file=sys.stderr)
+    for step in labelled_steps(scenarios, num_worlds, max_agents, sim_config, seed, progress, lookahead, mode, noise):
+        ok = step.labelled
+        if ok.any():
+            obs_out.append(step.obs[ok].astype(np.float32))
+            act_out.append(step.labels[ok].astype(np.int64))
+            err_out.append(step.error_m[ok])
+            sc_out.append(np.broadcast_to(step.scenario[:, None], ok.shape)[ok].astype(np.int64))
     if not act_out:
         raise ValueError("scenarios: no controllable vehicle with valid log steps to label")
     return BCData(np.concatenate(obs_out), np.concatenate(act_out), np.concatenate(err_out),
