@@ -1,0 +1,155 @@
+"""The `counterplay` command, the zoo recipes, the rl-zoo3 launcher and atomic checkpoints."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from cpalgo import cli, zoo
+from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
+from cpalgo.recipes import SELFPLAY_ENV_ID, ZOO_DIR, load_recipe
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def tiny_recipe(tmp_path: Path, source: Path, **extra) -> Path:
+    """A copy of a shipped recipe shrunk to seconds of work."""
+    doc = yaml.safe_load(source.read_text())
+    entry = doc[SELFPLAY_ENV_ID]
+    entry.update(n_envs=16, n_steps=8, batch_size=64, n_epochs=1, n_timesteps=256)
+    entry["env_kwargs"].update(max_agents=8, num_scenarios=2)
+    entry.update(extra)
+    out = tmp_path / source.name
+    out.write_text(yaml.safe_dump(doc))
+    return out
+
+
+def test_shipped_recipes_parse():
+    anchor = load_recipe(ZOO_DIR / "anchor.yml")
+    post = load_recipe(ZOO_DIR / "counterplay.yml")
+    assert anchor.policy == post.policy == "MlpLstmPolicy"
+    # post-training must build the same network as the anchor it starts from
+    assert anchor.algo_kwargs["policy_kwargs"] == post.algo_kwargs["policy_kwargs"]
+    assert post.algo_kwargs["window"] == (5, 60) and post.algo_kwargs["rho"] == 0.5
+    assert anchor.num_worlds * anchor.env_kwargs["max_agents"] == anchor.n_envs
+    assert "vec_env_wrapper" not in anchor.algo_kwargs and "env_kwargs" not in anchor.algo_kwargs
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[1, 2", "not valid YAML"),
+    ("other-env: {policy: x, n_envs: 1, n_timesteps: 1}", "no entry"),
+    (f"{SELFPLAY_ENV_ID}: {{policy: x, n_envs: 1}}", "n_timesteps"),
+    (f"{SELFPLAY_ENV_ID}: {{policy: x, n_envs: 1, n_timesteps: 1, policy_kwargs: 'open(1)'}}", "policy_kwargs"),
+])
+def test_bad_recipes_name_the_problem(tmp_path, text, match):
+    path = tmp_path / "bad.yml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match) as err:
+        load_recipe(path)
+    assert "bad.yml" in str(err.value)
+    with pytest.raises(ValueError, match="no such file"):
+        load_recipe(tmp_path / "missing.yml")
+
+
+class _Saver:
+    """Stands in for an SB3 model: writes its payload, or dies half-way."""
+
+    def __init__(self, payload: bytes, fail: bool = False):
+        self.payload, self.fail = payload, fail
+
+    def save(self, path: str) -> None:
+        with open(path, "wb") as fh:
+            fh.write(self.payload[: len(self.payload) // 2])
+            if self.fail:
+                raise RuntimeError("crash while saving")
+            fh.write(self.payload[len(self.payload) // 2:])
+
+
+def test_atomic_save_keeps_the_last_good_checkpoint(tmp_path):
+    target = tmp_path / "model.zip"
+    assert save_model_atomic(_Saver(b"first-good-checkpoint"), target) == target
+    with pytest.raises(RuntimeError):
+        save_model_atomic(_Saver(b"second-checkpoint-never-finished", fail=True), target)
+    assert target.read_bytes() == b"first-good-checkpoint"
+    assert [p.name for p in tmp_path.iterdir()] == ["model.zip"]  # no temp file left
+    assert save_model_atomic(_Saver(b"x"), tmp_path / "noext") == tmp_path / "noext.zip"
+    with pytest.raises(ValueError, match="save_freq"):
+        AtomicCheckpointCallback(0, target)
+
+
+def test_pool_command_summarises_families(capsys):
+    assert cli.main(["pool", "--n", "6", "--seed", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "6 scenarios generated" in out
+    for family in ("intersection", "merge", "parked"):
+        assert family in out
+    with pytest.raises(SystemExit, match="unknown"):
+        cli.main(["pool", "--n", "2", "--families", "spaghetti"])
+
+
+def test_train_anchor_then_post_train_end_to_end(tmp_path, capsys):
+    anchor_cfg = tiny_recipe(tmp_path, ZOO_DIR / "anchor.yml")
+    post_cfg = tiny_recipe(tmp_path, ZOO_DIR / "counterplay.yml")
+    anchor = tmp_path / "anchor.zip"
+    assert cli.main(["train-anchor", "--config", str(anchor_cfg), "--out", str(anchor), "--eval-tasks", "2",
+                     "--no-progress", "--threads", "1"]) == 0
+    report = json.loads((tmp_path / "anchor.json").read_text())
+    rates = report["normal_condition_outcomes"]
+    assert rates["agents"] > 0
+    assert sum(rates[k] for k in ("goal", "collision", "offroad", "timeout")) == pytest.approx(1.0)
+
+    out = tmp_path / "post"
+    assert cli.main(["post-train", "--anchor", str(anchor), "--config", str(post_cfg), "--out", str(out),
+                     "--timesteps", "256", "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["timesteps"] >= 256
+    assert summary["budget"]["main"] > 0
+    assert summary["outcomes_before"]["agents"] == summary["outcomes_after"]["agents"] > 0
+    assert (out / "counterplay.zip").is_file() and (out / "summary.md").read_text().startswith("# CounterPlay")
+    from cpalgo import CounterPlay
+
+    loaded = CounterPlay.load(out / "counterplay.zip", device="cpu")
+    assert loaded.num_timesteps == summary["timesteps"]
+
+    with pytest.raises(SystemExit, match="--anchor"):
+        cli.main(["post-train", "--anchor", str(tmp_path / "nope.zip"), "--config", str(post_cfg),
+                  "--out", str(out), "--no-progress"])
+
+
+def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch):
+    recipe = tiny_recipe(tmp_path, ZOO_DIR / "counterplay.yml")
+    monkeypatch.chdir(tmp_path)
+    logs = tmp_path / "logs"
+    code = zoo.main(["train", "--algo", "counterplay", "--env", SELFPLAY_ENV_ID, "-f", str(recipe),
+                     "--log-folder", str(logs), "-n", "128", "--seed", "1", "--eval-freq", "-1"])
+    assert code == 0
+    saved = list(logs.glob("counterplay/*/*.zip"))
+    assert saved, list(logs.rglob("*"))
+    from cpalgo import CounterPlay
+
+    model = CounterPlay.load(saved[0], device="cpu")
+    assert model.num_timesteps >= 128 and model.n_envs == 16  # 2 worlds x 8 agent slots
+
+
+def test_selfplay_settings_carrier():
+    import gymnasium
+
+    zoo.register()
+    env = gymnasium.make(SELFPLAY_ENV_ID, max_agents=4, num_scenarios=1)
+    assert env.unwrapped.selfplay_kwargs["max_agents"] == 4
+    assert env.action_space.n == 12 and env.observation_space.shape[0] > 0
+    with pytest.raises(RuntimeError, match="batched"):
+        env.reset()
+    with pytest.raises(ValueError, match="no-render"):
+        zoo.SelfPlaySettings(render_mode="human")
+    assert zoo._translate_config_flag(["-f", "a.yml", "-f2"]) == ["--conf-file", "a.yml", "-f2"]
+    assert zoo._translate_config_flag(["-f", "logs/"]) == ["-f", "logs/"]
