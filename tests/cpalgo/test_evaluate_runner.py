@@ -211,8 +211,12 @@ def test_sb3_checkpoint_ego_and_traffic_in_every_regime(tasks, tmp_path):
     bc = BCPolicy(layout.size, env.action_space.n, (16,), (layout.condition.start, layout.condition.stop))
     bc_path = bc.save(tmp_path / "bc.pt")
     two = [tasks[0], tasks[N_TASKS]]  # one task of each split
+    import torch
+
+    threads = torch.get_num_threads()
     runs = [R.evaluate(str(anchor), two, R.REGIMES, traffic_policy=str(anchor), bc_policy=bc_path,
                        progress=False, max_worlds=8) for _ in range(2)]
+    assert torch.get_num_threads() == threads  # EvalConfig.torch_threads is restored
     c = runs[0].columns
     assert runs[0].num_rows == 2 * len(R.REGIMES)
     assert set(c["regime"]) == set(R.REGIMES) and set(c["split"]) == {"interactive", "random"}
