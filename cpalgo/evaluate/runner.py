@@ -688,9 +688,27 @@ class _NoBar:
 def _progress(total: int, enabled: bool, label: str) -> Any:
     if not enabled:
         return _NoBar()
-    from tqdm.auto import tqdm
-
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # tqdm is not a declared dependency: fall back to plain lines
+        return _LineBar(total, label)
     return tqdm(total=total, desc=f"evaluate {label}", unit="task-regime", leave=False)
+
+
+class _LineBar:
+    """Minimal progress report on stderr when tqdm is missing."""
+
+    def __init__(self, total: int, label: str):
+        self.total, self.done, self.label = total, 0, label
+
+    def update(self, n: int) -> None:
+        import sys
+
+        self.done += n
+        print(f"evaluate {self.label}: {self.done}/{self.total} task-regimes", file=sys.stderr)
+
+    def close(self) -> None:
+        pass
 
 
 # ============================================================================ convenience
