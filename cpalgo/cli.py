@@ -107,6 +107,10 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     steps = args.timesteps or recipe.n_timesteps
     model = RecurrentPPO(recipe.policy, env, seed=args.seed, verbose=args.verbose,
                          tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
+    if args.init:  # continue from an earlier anchor (same recipe network)
+        if not Path(args.init).is_file():
+            raise SystemExit(f"--init: no such checkpoint {args.init!r}")
+        model.set_parameters(args.init, exact_match=True)
     out = Path(args.out)
     ckpt = AtomicCheckpointCallback(save_freq=max(1, 10 * recipe.algo_kwargs.get("n_steps", 64)), path=out)
     t0 = time.perf_counter()
@@ -263,6 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--config", default=str(DEFAULT_ANCHOR_CONFIG), help="zoo YAML recipe")
     ta.add_argument("--out", default="runs/anchor/anchor.zip")
     ta.add_argument("--timesteps", type=_positive_int, default=None)
+    ta.add_argument("--init", default=None, help="start from this anchor checkpoint's weights")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256)
     ta.set_defaults(func=cmd_train_anchor)
 
