@@ -11,7 +11,7 @@ goal        1 on the step the goal is first reached          + raw
 collision   1 while in collision this step                   - (c.collision + 0.1 |v|) raw
 offroad     1 when off-road this step                        - c.offroad raw
 comfort     1{|a_long|>3} + 1{|a_lat|>3} + 1{|jerk|>5}       - c.comfort raw
-lane_align  cos(e) with a lane near, else 0                  + c.lane_align raw
+lane_align  cos(e) - 1 with a lane near, else -1           + c.lane_align raw
 lane_center -min(|o - target|, lane_radius) with a lane      + c.lane_center raw
             near, else -lane_radius; target = -center_bias
             x lane_width (positive bias keeps right)
@@ -21,6 +21,9 @@ step        1                                                - step_penalty raw
 =========== ================================================ ===================================
 
 The reward is the sum of the weighted terms. Agents not present in the step get 0 for all.
+Every per-step term is a penalty (<= 0) and only reaching the goal pays: agents leave the
+episode at their goal, so a positive per-step term (e.g. alignment as ``+cos e``) would pay
+them for staying on the road instead of finishing, and self-play would learn to wait.
 """
 
 from __future__ import annotations
@@ -70,12 +73,12 @@ def write_reward(conds: wp.array3d(dtype=wp.float32), raw: wp.array3d(dtype=wp.f
     if offroad:
         r_off = 1.0
     r_comfort = float(violations)
-    r_align = float(0.0)
+    r_align = float(-1.0)
     r_center = -lane_radius
     r_vel = float(0.0)
     if has_lane:
         ce = wp.cos(err)
-        r_align = ce
+        r_align = ce - 1.0
         target = -conds[w, a, 8] * lane_width
         r_center = -wp.min(wp.abs(offset - target), lane_radius)
         r_vel = -wp.abs(speed) * (1.0 - ce) / 20.0
@@ -122,8 +125,9 @@ def reward_terms_np(condition: np.ndarray, *, goal_now: bool, collided: bool, of
     raw["offroad"] = float(offroad)
     raw["comfort"] = float(violations)
     raw["lane_center"] = -lane_radius
+    raw["lane_align"] = -1.0
     if has_lane:
-        raw["lane_align"] = float(np.cos(err))
+        raw["lane_align"] = float(np.cos(err)) - 1.0
         raw["lane_center"] = -min(abs(offset + c[C_CENTER_BIAS] * lane_width), lane_radius)
         raw["vel_align"] = -abs(speed) * (1 - np.cos(err)) / VEL_ALIGN_SCALE
     raw["reverse"] = max(-speed, 0.0)

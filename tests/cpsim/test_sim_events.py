@@ -181,6 +181,7 @@ def test_reward_terms_match_reference():
                 assert sim.reward[w, a].item() == pytest.approx(total, rel=1e-5, abs=1e-6)
     # the off-lane agent gets the no-lane centring penalty; the reversing one the reverse term
     assert sim.reward_terms["raw_lane_center"][0, 2].item() == pytest.approx(-4.0)
+    assert sim.reward_terms["raw_lane_align"][0, 2].item() == pytest.approx(-1.0)
     assert (sim.reward_terms["raw_reverse"][:, 1] >= 0).all()
 
 
@@ -194,7 +195,7 @@ def test_reward_hand_computed_collision_goal_and_centring():
     assert wtd["collision"] == pytest.approx(-(2.0 + 0.8))
     assert wtd["offroad"] == pytest.approx(-1.5)
     assert wtd["comfort"] == pytest.approx(-0.1)
-    assert wtd["lane_align"] == pytest.approx(0.01 * math.cos(0.1))
+    assert wtd["lane_align"] == pytest.approx(0.01 * (math.cos(0.1) - 1.0))
     assert wtd["vel_align"] == pytest.approx(-0.5 * 8.0 * (1 - math.cos(0.1)) / 20.0)
-    assert total == pytest.approx(1.0 - 2.8 - 1.5 - 0.1 + 0.01 * math.cos(0.1) - 0.005 * 0.85
+    assert total == pytest.approx(1.0 - 2.8 - 1.5 - 0.1 + 0.01 * (math.cos(0.1) - 1.0) - 0.005 * 0.85
                                   - 0.5 * 8.0 * (1 - math.cos(0.1)) / 20.0 - 1e-4)
