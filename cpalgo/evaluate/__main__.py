@@ -72,7 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ego condition: profile (cautious, cautious-normal, normal, normal-aggressive/halfway, "
                         "aggressive) or 10 comma-separated raw values")
     p.add_argument("--traffic-policy", default=None,
-                   help="co-player checkpoint for selfplay / aggressive / normal / cautious / mix")
+                   help="co-player checkpoint for selfplay / aggressive / normal / cautious / mix "
+                        "(default zoo/anchor.zip, the shipped self-play anchor)")
     p.add_argument("--bc-policy", default=None, help="BC traffic model for 'bc' (default zoo/bc_traffic.pt)")
     p.add_argument("--reference", default=None, help="label of the outcome analysis' reference (default first)")
     p.add_argument("--out", required=True, help="results folder (replaced atomically)")

@@ -56,6 +56,8 @@ SPLITS: tuple[str, ...] = ("interactive", "random")
 EGO_CONTROLLERS: dict[str, int] = {"replay": 1, "expert": 1, "idm": 2, "static": 3}
 #: Default shipped BC traffic model.
 DEFAULT_BC_PATH = Path(__file__).resolve().parents[2] / "zoo" / "bc_traffic.pt"
+#: The shipped reward-conditioned self-play anchor: default co-player of the policy regimes.
+DEFAULT_TRAFFIC_PATH = Path(__file__).resolve().parents[2] / "zoo" / "anchor.zip"
 
 # cpsim.config enum values (contract in docs/ARCHITECTURE.md)
 _POLICY = 0
@@ -427,6 +429,8 @@ class Evaluator:
         needs_traffic = {"selfplay", "aggressive", "normal", "cautious", "mix"} & set(self.regimes)
         if isinstance(traffic_policy, (str, os.PathLike)):
             traffic_policy = load_model(traffic_policy, "traffic_policy")
+        if needs_traffic and traffic_policy is None and DEFAULT_TRAFFIC_PATH.is_file():
+            traffic_policy = load_model(DEFAULT_TRAFFIC_PATH, "traffic_policy")
         if needs_traffic and traffic_policy is None:
             raise ValueError(f"traffic_policy: regimes {sorted(needs_traffic)} need a co-player policy "
                              "(the self-play / conditioned anchor checkpoint)")

@@ -140,9 +140,11 @@ def test_policy_ego_batched_over_regimes(tasks):
     assert res.meta["task_regimes_per_second"] > 0
 
 
-def test_bad_inputs(tasks, tmp_path):
+def test_bad_inputs(tasks, tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="unknown regime"):
         R.Evaluator(tasks, ["replay", "rush-hour"])
+    # without the shipped anchor, the policy regimes need an explicit co-player policy
+    monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATH", tmp_path / "no-anchor.zip")
     with pytest.raises(ValueError, match="traffic_policy"):
         R.Evaluator(tasks, ["normal"])
     with pytest.raises(ValueError, match="profile"):
