@@ -14,6 +14,7 @@ Sub-commands::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -58,10 +59,12 @@ def _make_env(recipe: Any, seed: int, num_worlds: int | None = None, **overrides
     return VecMonitor(cpsim.SelfPlayVecEnv(num_worlds=num_worlds or recipe.num_worlds, **kwargs))
 
 
-def _held_out(n: int) -> list:
+@functools.lru_cache(maxsize=4)
+def _held_out(n: int) -> tuple:
+    """The first ``n`` held-out tasks (generated once per process: before and after share them)."""
     from cpsim.scenario import eval_pool
 
-    return eval_pool(n, seed=HELD_OUT_SEED)
+    return tuple(eval_pool(n, seed=HELD_OUT_SEED))
 
 
 def _outcomes(model: Any, n_tasks: int, max_agents: int, condition: str = "normal") -> Any:
