@@ -745,26 +745,45 @@ class CounterPlay(RecurrentPPO):
         return flags
 
     def _run_searches(self) -> None:
-        """Budgeted searches of this generation, all branches batched; fills teachers."""
+        """Budgeted searches of this generation, in waves; fills teachers.
+
+        A search is admitted when its projected cost (an upper bound: every agent alive at
+        the root runs to the deadline in every branch) fits the generation's remaining
+        allowance. Branches end early when agents finish, so after each wave the allowance
+        is recomputed from the transitions actually run and the searches that did not fit
+        are offered again; the cap holds throughout.
+        """
         assert self._runner is not None
         stats = self._gen_stats
         n_branch = 1 + len(self.panel)
         per_search = n_branch + (2 if self.verify else 0)
-        accepted: list[SearchRequest] = []
-        projected = 0
-        for req in self._requests:
-            if self.max_searches is not None and len(accepted) >= int(self.max_searches):
-                stats["searches_skipped"] += 1
-                continue
-            cost = req.projected_transitions(per_search)
-            if self.budget.fits(projected + cost):
-                accepted.append(req)
-                projected += cost
-            else:
-                stats["searches_skipped"] += 1
-        if not accepted:
-            return
+        pending = list(self._requests)
+        if self.max_searches is not None:
+            stats["searches_skipped"] += max(0, len(pending) - int(self.max_searches))
+            pending = pending[: int(self.max_searches)]
+        while pending:
+            accepted: list[SearchRequest] = []
+            rest: list[SearchRequest] = []
+            projected = 0
+            for req in pending:
+                cost = req.projected_transitions(per_search)
+                if self.budget.fits(projected + cost):
+                    accepted.append(req)
+                    projected += cost
+                else:
+                    rest.append(req)
+            if not accepted:
+                break
+            self._run_wave(accepted, n_branch)
+            pending = rest
+        stats["searches_skipped"] += len(pending)
+        stats["teachers"] = len(self._teachers)
+
+    def _run_wave(self, accepted: list[SearchRequest], n_branch: int) -> None:
+        """Run one batch of searches (all branches together), rank, verify, keep teachers."""
+        stats = self._gen_stats
         stats["searches"] += len(accepted)
+        stats["search_waves"] += 1
         for req in accepted:
             stats[f"root_depth_{req.depth}"] += 1
         stats["root_depth_sum"] += sum(r.depth for r in accepted)
@@ -817,7 +836,6 @@ class CounterPlay(RecurrentPPO):
             if teacher is not None:
                 self._teachers.append(teacher)
                 stats[f"profile_{self.panel[j]}"] += 1
-        stats["teachers"] = len(self._teachers)
 
     def _make_teacher(self, req: SearchRequest, res: BranchResult, branch: int) -> Teacher | None:
         """The winning branch's focal trajectory from the root to the end of its task."""
@@ -887,6 +905,7 @@ class CounterPlay(RecurrentPPO):
         record("counterplay/failures_without_root", s["failures_without_root"])
         record("counterplay/searches", s["searches"])
         record("counterplay/searches_skipped", s["searches_skipped"])
+        record("counterplay/search_waves", s["search_waves"])
         record("counterplay/root_depth_mean", s["root_depth_sum"] / s["searches"] if s["searches"] else 0.0)
         for key in sorted(k for k in s if k.startswith("root_depth_") and k[11:].isdigit()):
             record(f"counterplay/roots_by_depth/{key[11:]}", s[key])

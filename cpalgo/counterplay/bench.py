@@ -87,15 +87,21 @@ def run_benchmark(worlds: int = 4, agents: int = 8, n_steps: int = 91, generatio
     from cpsim import SelfPlayVecEnv
 
     th.set_num_threads(threads)
+    policy_kwargs: dict[str, Any] = dict(lstm_hidden_size=hidden, net_arch=[hidden])
+    if anchor is not None:  # build the anchor's own network so its weights load exactly
+        from stable_baselines3.common.save_util import load_from_zip_file
+
+        data, _, _ = load_from_zip_file(anchor, device="cpu", load_data=True)
+        policy_kwargs = dict(data.get("policy_kwargs") or {})
     common = dict(n_steps=n_steps, batch_size=n_steps * 8, n_epochs=2, seed=seed, device="cpu",
-                  policy_kwargs=dict(lstm_hidden_size=hidden, net_arch=[hidden]))
+                  policy_kwargs=policy_kwargs)
     env_ppo = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
     ppo = RecurrentPPO("MlpLstmPolicy", env_ppo, **common)
     env_cp = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
     cp = CounterPlay("MlpLstmPolicy", env_cp, branch_cap=branch_cap, **common)
     if anchor is not None:
-        ppo.set_parameters(anchor, exact_match=False, device="cpu")
-        cp.set_parameters(anchor, exact_match=False, device="cpu")
+        ppo.set_parameters(anchor, exact_match=True, device="cpu")
+        cp.set_parameters(anchor, exact_match=True, device="cpu")
     _attach_memory_logger(ppo)
     writer = _attach_memory_logger(cp)
     n_envs = env_cp.num_envs
