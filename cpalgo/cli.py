@@ -184,13 +184,26 @@ def post_train(anchor: str | os.PathLike, config: str | os.PathLike, out_dir: st
         "timesteps": int(model.num_timesteps),
         "wall_s": round(wall, 1),
         "budget": budget.as_dict() if hasattr(budget, "as_dict") else dict(vars(budget)),
-        "search": getattr(model, "search_totals", {}),
+        "search": _search_summary(getattr(model, "search_totals", {}), model.panel),
         "held_out_tasks": eval_tasks,
         "outcomes_before": before.as_dict(),
         "outcomes_after": after.as_dict(),
     }
     _write_summary(out, summary)
     return summary
+
+
+def _search_summary(totals: dict[str, float], panel: Sequence[str]) -> dict[str, Any]:
+    """The search counters a reader wants, from CounterPlay's running totals."""
+    keys = ("failures", "failures_collision", "failures_offroad", "failures_timeout", "searches",
+            "searches_skipped", "factual_completed", "admissible", "teachers_chosen", "verified",
+            "verification_failed", "teachers")
+    out: dict[str, Any] = {k: int(totals.get(k, 0)) for k in keys}
+    searches = out["searches"]
+    out["mean_root_depth"] = round(totals.get("root_depth_sum", 0) / searches, 2) if searches else None
+    out["winning_profiles"] = {name: int(totals.get(f"profile_{name}", 0)) for name in panel}
+    out["search_cpu_s"] = round(float(totals.get("search_cpu_s", 0.0)), 2)
+    return out
 
 
 def _write_summary(out: Path, summary: dict[str, Any]) -> None:
