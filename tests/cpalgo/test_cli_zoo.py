@@ -80,6 +80,7 @@ def test_atomic_save_keeps_the_last_good_checkpoint(tmp_path):
     with pytest.raises(RuntimeError):
         save_model_atomic(_Saver(b"second-checkpoint-never-finished", fail=True), target)
     assert target.read_bytes() == b"first-good-checkpoint"
+    assert target.stat().st_mode & 0o044  # readable by others, as a plain save would be
     assert [p.name for p in tmp_path.iterdir()] == ["model.zip"]  # no temp file left
     assert save_model_atomic(_Saver(b"x"), tmp_path / "noext") == tmp_path / "noext.zip"
     with pytest.raises(ValueError, match="save_freq"):
