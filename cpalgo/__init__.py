@@ -6,25 +6,12 @@ imported on first use).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from cpsim._lazy import lazy_exports
 
 _LAZY = {
     "CounterPlay": "cpalgo.counterplay.algorithm",
 }
 
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'cpalgo' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
+__getattr__, __dir__ = lazy_exports("cpalgo", _LAZY, globals())
 
 __all__ = list(_LAZY)

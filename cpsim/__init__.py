@@ -6,8 +6,7 @@ compilation, no torch import) and registers the Gymnasium environments.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from cpsim._lazy import lazy_exports
 
 from cpsim.conditions import (
     CONDITION_FIELDS,
@@ -36,19 +35,7 @@ _LAZY = {
     "scenario": "cpsim.scenario",
 }
 
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'cpsim' has no attribute {name!r}")
-    mod = importlib.import_module(module)
-    value = mod if module.endswith("." + name) and not hasattr(mod, name) else getattr(mod, name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_exports("cpsim", _LAZY, globals())
 
 
 def _register_envs() -> None:

@@ -13,8 +13,7 @@ Heavy modules (simulator, torch, matplotlib) are imported lazily on first access
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from cpsim._lazy import lazy_exports
 
 from cpalgo.evaluate.metrics import OutcomeClass, CollisionType, task_score, outcome_class
 
@@ -29,14 +28,6 @@ _LAZY = {
     "markdown_tables": "cpalgo.evaluate.tables",
 }
 
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'cpalgo.evaluate' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
+__getattr__, __dir__ = lazy_exports("cpalgo.evaluate", _LAZY, globals())
 
 __all__ = ["OutcomeClass", "CollisionType", "task_score", "outcome_class", *_LAZY]

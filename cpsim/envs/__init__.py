@@ -12,8 +12,7 @@ Names are imported lazily (the env modules import SB3 and torch).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from cpsim._lazy import lazy_exports
 
 _LAZY = {
     "SelfPlayVecEnv": "cpsim.envs.selfplay",
@@ -24,18 +23,6 @@ _LAZY = {
     "resolve_regime": "cpsim.envs.regimes",
 }
 
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'cpsim.envs' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
+__getattr__, __dir__ = lazy_exports("cpsim.envs", _LAZY, globals())
 
 __all__ = list(_LAZY)

@@ -11,8 +11,7 @@
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from cpsim._lazy import lazy_exports
 
 from cpsim.scenario.datatypes import (
     DT,
@@ -44,19 +43,7 @@ _LAZY = {
     "save_cache": "cpsim.scenario.womd",
 }
 
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'cpsim.scenario' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
+__getattr__, __dir__ = lazy_exports("cpsim.scenario", _LAZY, globals())
 
 __all__ = ["DT", "MIN_GOAL_DISTANCE", "NUM_STEPS", "AgentType", "RoadType", "Scenario",
            "ScenarioError", *_LAZY]
