@@ -33,7 +33,6 @@ import dataclasses
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -41,6 +40,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch as th
 from torch import nn
+
+from cpsim.atomic import atomic_path
 
 FORMAT_VERSION = 1
 # cpsim.config enum values (contract in docs/ARCHITECTURE.md)
@@ -118,18 +119,8 @@ class BCPolicy(nn.Module):
             "condition_slice": self.condition_slice, "meta": self.meta,
             "state_dict": {k: v.detach().to(th.float16) for k, v in self.state_dict().items()},
         }
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        os.close(fd)
-        try:
+        with atomic_path(path) as tmp:
             th.save(payload, tmp)
-            from cpalgo.evaluate.tables import umask_mode
-
-            os.chmod(tmp, umask_mode())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
         return path
 
     @classmethod

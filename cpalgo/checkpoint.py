@@ -7,11 +7,12 @@ SB3's ``save`` writes the zip in place; we write to a temp file in the same fold
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 from stable_baselines3.common.callbacks import BaseCallback
+
+from cpsim.atomic import atomic_path
 
 
 def save_model_atomic(model: Any, path: str | os.PathLike) -> Path:
@@ -19,19 +20,8 @@ def save_model_atomic(model: Any, path: str | os.PathLike) -> Path:
     path = Path(path)
     if path.suffix != ".zip":
         path = path.with_suffix(path.suffix + ".zip") if path.suffix else path.with_suffix(".zip")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".zip.tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".zip.tmp") as tmp:  # a suffix, so SB3 appends no ".zip"
         model.save(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a checkpoint is an ordinary file
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

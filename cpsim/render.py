@@ -24,11 +24,12 @@ camera never rotates, which is what lets the road layer be cached).
 from __future__ import annotations
 
 import os
-import tempfile
 from collections import OrderedDict
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
+
+from cpsim.atomic import atomic_path
 
 from cpsim.scenario.datatypes import RoadType, Scenario
 
@@ -615,11 +616,7 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
             raise ValueError(f"frames[{k}]: expected shape {shape} with 3 channels, got {f.shape}")
         if f.dtype != np.uint8:
             raise ValueError(f"frames[{k}]: expected dtype uint8, got {f.dtype}")
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp_video_", suffix=ext, dir=folder)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=ext) as tmp:
         if ext == ".gif":
             imageio.mimsave(tmp, frames, format="GIF", duration=1000.0 / fps, loop=0)
         else:
@@ -633,14 +630,6 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
                     writer.append_data(f)
             finally:
                 writer.close()
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file normal permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

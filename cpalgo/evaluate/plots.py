@@ -13,12 +13,12 @@ Every writer saves through a temp file and ``os.replace``.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 
+from cpsim.atomic import atomic_path
 from cpalgo.evaluate import metrics as M
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -50,19 +50,8 @@ def _figure(width: float, height: float) -> "Figure":
 def save_figure(fig: "Figure", path: str | os.PathLike) -> Path:
     """Save a figure as PNG atomically (temp file in the same folder, then ``os.replace``)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-        from cpalgo.evaluate.tables import umask_mode
-
-        os.chmod(tmp, umask_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

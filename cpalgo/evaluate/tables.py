@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from cpsim.atomic import atomic_path, default_mode
 from cpalgo.evaluate import metrics as M
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -258,27 +259,10 @@ def _clean_nan(o: Any) -> Any:
 
 
 # ----------------------------------------------------------------------------- atomic writing
-def umask_mode(directory: bool = False) -> int:
-    """Permissions a plain ``open``/``mkdir`` would give (mkstemp/mkdtemp use 0600/0700)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return (0o777 if directory else 0o666) & ~mask
-
-
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` through a temp file in the same folder and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, umask_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
 
 
 class AtomicDir:
@@ -299,7 +283,7 @@ class AtomicDir:
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"out: {self.out} exists and is not a folder")
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.tmp-", dir=parent))
-        os.chmod(self.tmp, umask_mode(directory=True))
+        os.chmod(self.tmp, default_mode(directory=True))
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb) -> None:

@@ -47,6 +47,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from cpsim.atomic import atomic_path
+
 from cpsim.scenario.datatypes import (
     NUM_STEPS,
     AgentType,
@@ -456,18 +458,8 @@ def save_cache(
     # Scalars travel in one JSON entry: every .npz entry costs a header parse on load.
     payload[_META] = np.array(json.dumps(meta))
     writer = np.savez_compressed if compress else np.savez
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=f".{dst.stem}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            writer(fh, **payload)
-        os.replace(tmp, dst)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
+        writer(fh, **payload)
     return dst
 
 
