@@ -14,10 +14,8 @@ Options: ``--seconds S`` time budget per family (default 2), ``--families a,b``,
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 from typing import Sequence
@@ -49,34 +47,12 @@ def bench_generation(families: Sequence[str], seconds: float, first_seed: int = 
 
 
 def bench_womd(folder: Path, repeat: int) -> list[dict] | str:
-    """Best-of-``repeat`` JSON and cache load times per file, or why it was skipped."""
-    if importlib.util.find_spec("cpsim.scenario.womd") is None:
-        return "skipped: cpsim.scenario.womd is not there yet"
-    from cpsim.scenario import convert_dir, load
+    """Best-of-``repeat`` JSON and (compressed) cache load times per file, or why it was skipped."""
+    from cpsim.scenario.womd import bench_load
 
-    files = sorted(folder.glob("*.json")) if folder.is_dir() else []
-    if not files:
+    if not folder.is_dir() or not any(folder.glob("*.json")):
         return f"skipped: no WOMD JSON files in {folder}"
-
-    def best(fn) -> float:
-        times = []
-        for _ in range(repeat):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-        return 1e3 * min(times)
-
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        convert_dir(folder, tmp)
-        for path in files:
-            cache = Path(tmp) / f"{path.stem}.npz"
-            scenario = load(path)
-            rows.append({"file": path.name, "agents": scenario.num_agents,
-                         "road_points": int(scenario.road_points.shape[0]),
-                         "json_ms": best(lambda: load(path)), "cache_ms": best(lambda: load(cache)),
-                         "json_kb": path.stat().st_size / 1024, "cache_kb": cache.stat().st_size / 1024})
-    return rows
+    return [{**r, "cache_ms": r["npz_ms"], "cache_kb": r["npz_kb"]} for r in bench_load(folder, repeat)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

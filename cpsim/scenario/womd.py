@@ -659,7 +659,7 @@ def convert_dir(
 
 
 # ---------------------------------------------------------------------------- command line
-def _bench(folder: Path, repeat: int) -> list[dict[str, Any]]:
+def bench_load(folder: Path, repeat: int) -> list[dict[str, Any]]:
     """Best-of-``repeat`` load times (ms) of each JSON in ``folder`` and of its caches."""
     import time
 
@@ -679,6 +679,7 @@ def _bench(folder: Path, repeat: int) -> list[dict[str, Any]]:
             raw = save_cache(scenario, Path(tmp) / f"{stem}_raw.npz", compress=False)
             rows.append({
                 "file": json_path.name,
+                "agents": scenario.num_agents,
                 "json_ms": best(lambda: load_json(json_path)),
                 "npz_ms": best(lambda: load_cache(packed)),
                 "npz_raw_ms": best(lambda: load_cache(raw)),
@@ -708,7 +709,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(report.summary())
         return 0 if report.ok else 1
     print(f"{'file':<36} {'json ms':>8} {'npz ms':>7} {'raw ms':>7} {'json KB':>8} {'npz KB':>7} {'raw KB':>7} {'speed-up':>8}")
-    for row in _bench(Path(args.folder), max(1, args.repeat)):
+    for row in bench_load(Path(args.folder), max(1, args.repeat)):
         print(f"{row['file']:<36} {row['json_ms']:8.2f} {row['npz_ms']:7.2f} {row['npz_raw_ms']:7.2f} "
               f"{row['json_kb']:8.0f} {row['npz_kb']:7.0f} {row['npz_raw_kb']:7.0f} {row['json_ms'] / row['npz_ms']:7.1f}x")
     return 0
