@@ -6,13 +6,23 @@ index = long_idx * 3 + lat_idx over long jerk {-15, -4, 0, 4} x lat jerk {-4, 0,
     a_long' = a_long + j_long dt, set to 0 if it changes sign, else clipped to [-5, 2.5]
     a_lat'  = a_lat + j_lat dt,   set to 0 if it changes sign, else clipped to [-4, 4]
     v_s = |v| signed by v . heading;  v' = v_s + (a_long + a_long') dt / 2,
-          set to 0 if it changes sign, else clipped to [-2, 20]
-    kappa = a_lat' / max(v'^2, 1e-5) (|kappa| >= 1e-5), wheelbase = 0.6 length
+          set to 0 if it changes sign, else clipped to [-2, 20]; a_long' = 0 when the
+          speed was limited (the acceleration behind a refused speed change did not happen)
+    kappa = a_lat' / max(v'^2, 1e-5), wheelbase = 0.6 length
     steer' = clip(steer + clip(atan(kappa wheelbase) - steer, -0.6 dt, 0.6 dt), -0.55, 0.55)
     kappa = tan(steer') / wheelbase;  a_lat' = v'^2 kappa
     d = (v' + v_s) dt / 2;  theta = d kappa;  arc (sin theta / kappa, (1 - cos theta) / kappa)
     in the heading frame (straight when |kappa| or |theta| < 1e-5); heading += theta;
     velocity = v' (cos, sin)(heading').
+
+Two departures from PufferDrive's jerk step, both absorbing states of the original:
+PufferDrive floors |kappa| at 1e-5 with the sign of a_lat' (+ for 0), so a zero lateral
+command leaves the steering at +atan(1e-5 wheelbase) and a_lat at +v^2 1e-5; from there
+every negative jerk changes sign and is reset to 0 again, so once an agent has steered
+left and straightened out it can never steer right. And a_long was kept when the speed
+limiter refused the change (stopped at 0 or the [-2, 20] bounds), so a hard stop left
+a_long = -5 that only ~13 full-throttle steps could unwind (and the next steps reversed).
+Here a zero command means zero curvature and a refused speed change zeroes a_long.
 
 Classic bicycle (GPUDrive / PufferDrive 2.0; 91 actions, index = accel_idx * 13 + steer_idx
 over accel {-4, -2.667, -1.333, 0, 1.333, 2.667, 4} m/s^2 x steer linspace(-1, 1, 13) rad),
@@ -80,17 +90,15 @@ def jerk_step(pos: wp.vec2f, heading: float, vel: wp.vec2f, a_long: float, a_lat
     signed_v = speed
     if vel[0] * hx + vel[1] * hy < 0.0:
         signed_v = -speed
-    v_new = signed_v + 0.5 * (a_long_new + a_long) * dt
-    if signed_v * v_new < 0.0:
+    v_target = signed_v + 0.5 * (a_long_new + a_long) * dt
+    v_new = v_target
+    if signed_v * v_target < 0.0:
         v_new = 0.0
     else:
-        v_new = wp.clamp(v_new, -2.0, 20.0)
+        v_new = wp.clamp(v_target, -2.0, 20.0)
+    if v_new != v_target:
+        a_long_new = 0.0
     curv = a_lat_new / wp.max(v_new * v_new, 1.0e-5)
-    mag = wp.max(wp.abs(curv), 1.0e-5)
-    if curv < 0.0:
-        curv = -mag
-    else:
-        curv = mag
     target = wp.atan(curv * wheelbase)
     steer_new = wp.clamp(steer + wp.clamp(target - steer, -0.6 * dt, 0.6 * dt), -0.55, 0.55)
     curv = wp.tan(steer_new) / wheelbase
@@ -248,10 +256,11 @@ def jerk_step_np(x, y, heading, vx, vy, a_long, a_lat, steer, length, j_long, j_
     atn = 0.0 if a_lat * atn < 0 else float(np.clip(atn, *JERK_A_LAT_RANGE))
     speed = math.hypot(vx, vy)
     sv = -speed if vx * hx + vy * hy < 0 else speed
-    vn = sv + 0.5 * (aln + a_long) * dt
-    vn = 0.0 if sv * vn < 0 else float(np.clip(vn, *JERK_SPEED_RANGE))
+    v_target = sv + 0.5 * (aln + a_long) * dt
+    vn = 0.0 if sv * v_target < 0 else float(np.clip(v_target, *JERK_SPEED_RANGE))
+    if vn != v_target:
+        aln = 0.0
     curv = atn / max(vn * vn, 1e-5)
-    curv = math.copysign(max(abs(curv), 1e-5), curv) if curv != 0 else 1e-5
     target = math.atan(curv * wb)
     steer_n = float(np.clip(steer + np.clip(target - steer, -STEER_RATE * dt, STEER_RATE * dt),
                             -STEER_LIMIT, STEER_LIMIT))

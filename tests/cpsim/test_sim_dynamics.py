@@ -34,18 +34,46 @@ def test_jerk_longitudinal_hand_computed():
     _act(sim, 3 * 3 + 1)
     a_long = 0.4                                   # 0 + 4 * 0.1
     v = 10.0 + 0.5 * (a_long + 0.0) * 0.1          # 10.02
-    steer = math.atan(1e-5 * 3.0)                  # minimum curvature 1e-5 (PufferDrive)
-    curv = math.tan(steer) / 3.0
-    d = 0.5 * (v + 10.0) * 0.1                     # 1.001 m
-    theta = d * curv
+    # a zero lateral command is zero curvature: straight ahead (no 1e-5 floor)
     assert sim.accel[0, 0].item() == pytest.approx(a_long, abs=1e-6)
-    assert sim.speed[0, 0].item() == pytest.approx(10.02, abs=1e-5)
-    assert sim.steer[0, 0].item() == pytest.approx(steer, abs=1e-7)
-    assert sim.xy[0, 0, 0].item() == pytest.approx(math.sin(theta) / curv, abs=1e-5)
+    assert sim.speed[0, 0].item() == pytest.approx(v, abs=1e-5)
+    assert sim.steer[0, 0].item() == 0.0
     assert sim.xy[0, 0, 0].item() == pytest.approx(1.001, abs=1e-5)
-    # (1 - cos theta) / kappa = 5e-6 m: float32 may take the straight-line branch (0)
-    assert sim.xy[0, 0, 1].item() == pytest.approx((1 - math.cos(theta)) / curv, abs=1e-5)
-    assert sim.heading[0, 0].item() == pytest.approx(theta, abs=1e-7)
+    assert sim.xy[0, 0, 1].item() == 0.0
+    assert sim.heading[0, 0].item() == 0.0
+
+
+def test_jerk_can_steer_right_after_a_left_turn():
+    # PufferDrive's curvature floor made +epsilon steering absorbing: after any left turn
+    # every right jerk was reset to 0 by the sign-change rule and the agent drove straight.
+    sim = _solo(speed=10.0, length=4.5)
+    for action in [2 * 3 + 2] * 5 + [2 * 3 + 0] * 15:
+        _act(sim, action)
+    state = dict(x=0.0, y=0.0, heading=0.0, vx=10.0, vy=0.0, a_long=0.0, a_lat=0.0, steer=0.0)
+    for j_lat in [4.0] * 5 + [-4.0] * 15:
+        new = jerk_step_np(*state.values(), sim.size[0, 0, 0].item(), 0.0, j_lat)
+        state = {k: new[k] for k in state}
+    assert state["a_lat"] < -2.0 and state["steer"] < -0.02 and state["heading"] < -0.05
+    # float64 reaches exactly zero steering one step later than float32; same shape
+    assert sim.steer[0, 0].item() == pytest.approx(state["steer"], abs=0.015)
+    assert sim.heading[0, 0].item() == pytest.approx(state["heading"], abs=0.05)
+    assert sim.heading[0, 0].item() < -0.05 and bool(sim.alive[0, 0])
+
+
+def test_jerk_refused_speed_change_zeroes_the_acceleration():
+    # braking hard to a stop: the limiter refuses the sign change, so a_long is 0 after it
+    # (PufferDrive kept a_long = -5 and the next steps drove backwards)
+    sim = _solo(speed=1.0, length=4.5)
+    for _ in range(10):
+        _act(sim, 0 * 3 + 1)                       # long jerk -15 until the car stands
+        if sim.speed[0, 0].item() <= 0.0:
+            break
+    assert sim.speed[0, 0].item() == 0.0
+    assert sim.accel[0, 0].item() == 0.0
+    _act(sim, 2 * 3 + 1)                           # zero jerk: stays stopped, not reversing
+    assert sim.speed[0, 0].item() == 0.0
+    _act(sim, 3 * 3 + 1)                           # +4 jerk: moves forward at once
+    assert sim.speed[0, 0].item() > 0.0
 
 
 def test_jerk_lateral_hand_computed():
