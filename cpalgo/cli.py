@@ -38,6 +38,13 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    value = int(float(text))
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
 def _set_threads(threads: int | None) -> None:
     import torch
 
@@ -113,15 +120,27 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         if not Path(args.init).is_file():
             raise SystemExit(f"--init: no such checkpoint {args.init!r}")
         model.set_parameters(args.init, exact_match=True)
+    imitation = []
+    if args.imitate:  # DAgger warm start from the tracking expert before PPO
+        from cpalgo.pretrain import ImitationConfig, imitate_expert
+
+        imitation = imitate_expert(model, config=ImitationConfig(iterations=args.imitate,
+                                                                 num_worlds=args.imitate_worlds),
+                                   seed=args.seed)
+        if args.imitate_only:
+            steps = 0
     out = Path(args.out)
     ckpt = AtomicCheckpointCallback(save_freq=max(1, 10 * recipe.algo_kwargs.get("n_steps", 64)), path=out)
     t0 = time.perf_counter()
-    model.learn(steps, progress_bar=args.progress, callback=ckpt)
+    if steps:
+        model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0
     save_model_atomic(model, out)
     rates = _outcomes(model, args.eval_tasks, recipe.env_kwargs.get("max_agents", 8))
     report = {"command": " ".join(sys.argv), "timesteps": int(model.num_timesteps), "wall_s": round(wall, 1),
               "normal_condition_outcomes": rates.as_dict()}
+    if imitation:
+        report["imitation_rounds"] = imitation
     Path(str(out.with_suffix("")) + ".json").write_text(json.dumps(report, indent=2))
     print(f"anchor saved to {out} after {model.num_timesteps} steps in {wall:.0f} s")
     print(f"held-out outcomes under the normal condition: {rates}")
@@ -283,6 +302,10 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--out", default="runs/anchor/anchor.zip")
     ta.add_argument("--timesteps", type=_positive_int, default=None)
     ta.add_argument("--init", default=None, help="start from this anchor checkpoint's weights")
+    ta.add_argument("--imitate", type=_non_negative_int, default=0, metavar="ROUNDS",
+                    help="DAgger rounds imitating cpsim.expert.TrackingExpert before PPO (default 0: none)")
+    ta.add_argument("--imitate-worlds", type=_positive_int, default=128, help="worlds per DAgger round")
+    ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256)
     ta.set_defaults(func=cmd_train_anchor)
 

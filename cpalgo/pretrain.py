@@ -1,0 +1,286 @@
+"""Imitation warm start of a recurrent self-play policy from the tracking expert (DAgger).
+
+RL from scratch on the jerk model spends millions of transitions learning to stay on the
+road. :func:`imitate_expert` gives a :class:`sb3_contrib.RecurrentPPO` (or CounterPlay)
+policy that skill first: it rolls the policy out in self-play on its own training pool,
+with conditions drawn from p_train as in the anchor recipe, labels every visited state
+with :class:`cpsim.expert.TrackingExpert`'s action, and trains the actor by cross-entropy
+on whole episodes (the LSTM runs from a zero memory at the episode start, exactly as in
+the rollout). DAgger rounds shift the data from the expert's states (round 0 drives with
+the expert) to the policy's own (later rounds drive with the policy with probability
+1 - beta), so the policy learns to recover from its own mistakes. The critic is fitted to
+the discounted conditioned returns of the same episodes, so PPO fine-tuning starts with
+a value function that matches the policy instead of destroying it in its first updates.
+
+Shapes: T = episode steps, N = worlds x agent slots, D = observation size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch as th
+import torch.nn.functional as F
+
+from cpsim.conditions import sample_conditions
+from cpsim.config import Controller
+from cpsim.envs.selfplay import OBS_BOUND
+
+__all__ = ["ImitationConfig", "EpisodeBatch", "collect_episodes", "imitation_losses", "imitate_expert"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ImitationConfig:
+    """DAgger schedule and optimiser settings.
+
+    Attributes:
+        iterations: DAgger rounds (each collects ``episodes`` batches of worlds).
+        episodes: batches of ``num_worlds`` episodes collected per round.
+        num_worlds: worlds simulated together.
+        beta: probability that the expert drives in round 0; round i uses beta * decay^i.
+        decay: per-round factor of beta.
+        keep_rounds: rounds of data kept for training (the newest ones).
+        epochs: passes over the kept data per round.
+        batch_sequences: episodes (agent slots) per gradient step.
+        learning_rate: Adam step size.
+        value_coef: weight of the critic's regression loss.
+        gamma: discount of the critic's return targets.
+        max_grad_norm: gradient clipping.
+    """
+
+    iterations: int = 6
+    episodes: int = 1
+    num_worlds: int = 64
+    beta: float = 1.0
+    decay: float = 0.5
+    keep_rounds: int = 3
+    epochs: int = 10
+    batch_sequences: int = 32
+    learning_rate: float = 1e-3
+    value_coef: float = 0.5
+    gamma: float = 0.99
+    max_grad_norm: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "episodes", "num_worlds", "keep_rounds", "epochs", "batch_sequences"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"ImitationConfig.{name}: must be an integer >= 1, got {value!r}")
+        for name in ("beta", "decay", "gamma"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"ImitationConfig.{name}: must be in [0, 1], got {value!r}")
+        for name in ("learning_rate", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"ImitationConfig.{name}: must be > 0, got {getattr(self, name)!r}")
+        if self.value_coef < 0:
+            raise ValueError(f"ImitationConfig.value_coef: must be >= 0, got {self.value_coef!r}")
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "ImitationConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"ImitationConfig: unknown keys {unknown}; accepted: {sorted(known)}")
+        return cls(**values)
+
+
+@dataclasses.dataclass
+class EpisodeBatch:
+    """Whole self-play episodes of N agent slots, time-major.
+
+    Attributes:
+        obs: (T, N, D) float32 observations as the policy saw them (zero when inactive).
+        labels: (T, N) int64 expert actions.
+        mask: (T, N) bool, the slot held a live POLICY agent at that step.
+        returns: (T, N) float32 discounted conditioned return from that step on.
+        agreement: share of masked steps where the policy's argmax equals the label.
+    """
+
+    obs: th.Tensor
+    labels: th.Tensor
+    mask: th.Tensor
+    returns: th.Tensor
+    agreement: float
+
+
+def _policy_obs(sim) -> th.Tensor:
+    obs = sim.obs.reshape(sim.num_worlds * sim.max_agents, -1).clamp(-OBS_BOUND, OBS_BOUND)
+    return obs * sim.policy_mask.reshape(-1, 1)
+
+
+@th.no_grad()
+def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
+                     gamma: float = 0.99) -> EpisodeBatch:
+    """Run one episode in every world of ``sim`` and label it with the expert.
+
+    Every POLICY agent follows the expert with probability ``beta`` per episode (a
+    per-agent coin, so rounds mix expert and policy agents in the same worlds) and its
+    own sampled action otherwise. Conditions are drawn from p_train per agent.
+    """
+    from cpalgo.common.policy_utils import policy_step_logits, zero_states
+
+    W, A = sim.num_worlds, sim.max_agents
+    N = W * A
+    pool = rng.integers(0, sim.num_scenarios, size=W)
+    sim.reset(scenario_index=pool, conditions=sample_conditions(rng, (W, A)))
+    expert.refresh()
+    T = sim.config.episode_steps
+    device = policy.device
+    states = zero_states(policy, N, device)
+    by_expert = th.as_tensor(rng.random(N) < beta)
+    obs_buf = th.zeros((T, N, sim.obs_layout.size), dtype=th.float32)
+    labels = th.zeros((T, N), dtype=th.int64)
+    mask = th.zeros((T, N), dtype=th.bool)
+    rewards = th.zeros((T, N), dtype=th.float32)
+    agree = 0
+    starts = th.ones(N, device=device)
+    for t in range(T):
+        live = ((sim.controllers == int(Controller.POLICY)) & sim.alive).reshape(-1).clone()
+        obs = _policy_obs(sim)
+        logits, _, states = policy_step_logits(policy, obs.to(device), states, starts)
+        starts = th.zeros(N, device=device)
+        label = expert.actions().reshape(-1).long()
+        sampled = th.distributions.Categorical(logits=logits).sample().cpu()
+        agree += int(((logits.argmax(-1).cpu() == label) & live).sum())
+        action = th.where(by_expert, label, sampled)
+        obs_buf[t] = obs
+        labels[t] = label
+        mask[t] = live
+        sim.step(action.reshape(W, A).to(th.int32))
+        rewards[t] = sim.reward.reshape(-1) * live
+        if bool(sim.world_done.all()):
+            obs_buf, labels, mask, rewards = obs_buf[: t + 1], labels[: t + 1], mask[: t + 1], rewards[: t + 1]
+            break
+    returns = th.zeros_like(rewards)
+    running = th.zeros(N)
+    for t in range(rewards.shape[0] - 1, -1, -1):
+        running = rewards[t] + gamma * running * mask[t]
+        returns[t] = running
+    n = max(int(mask.sum()), 1)
+    return EpisodeBatch(obs_buf, labels, mask, returns, agree / n)
+
+
+def _sequence_forward(policy, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """Logits (T, B, n_actions) and values (T, B) of whole episodes from a zero memory."""
+    T, B, D = obs.shape
+    flat = obs.swapaxes(0, 1).reshape(B * T, D)  # sequence-major, as sb3-contrib expects
+    from cpalgo.common.policy_utils import zero_states
+
+    states = zero_states(policy, B, obs.device)
+    starts = th.zeros(B * T, device=obs.device)
+    starts[::T] = 1.0
+    from cpalgo.common.policy_utils import actor_logits, critic_values
+
+    logits = actor_logits(policy, flat, states.pi, starts)[0]
+    values = critic_values(policy, flat, states.vf, starts)
+    return logits.reshape(B, T, -1).swapaxes(0, 1), values.reshape(B, T).swapaxes(0, 1)
+
+
+def imitation_losses(policy, obs: th.Tensor, labels: th.Tensor, mask: th.Tensor,
+                     returns: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """Masked cross-entropy of the actor and mean squared error of the critic.
+
+    Args:
+        obs: (T, B, D); labels, mask, returns: (T, B).
+    """
+    logits, values = _sequence_forward(policy, obs)
+    m = mask.float()
+    n = m.sum().clamp(min=1.0)
+    ce = (F.cross_entropy(logits.reshape(-1, logits.shape[-1]), labels.reshape(-1), reduction="none")
+          * m.reshape(-1)).sum() / n
+    mse = (((values - returns) ** 2) * m).sum() / n
+    return ce, mse
+
+
+def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: ImitationConfig | None = None,
+                   sim_config: Any = None, seed: int = 0,
+                   log: Callable[[str], None] | None = print) -> list[dict[str, float]]:
+    """DAgger warm start of ``model.policy`` from :class:`cpsim.expert.TrackingExpert`.
+
+    Args:
+        model: a RecurrentPPO-family model with a discrete action space whose env is a
+            :class:`cpsim.SelfPlayVecEnv` (its scenarios, slots and dynamics are used
+            unless ``scenarios`` / ``sim_config`` are given).
+        scenarios: training scenarios (default: the env's pool).
+        config: the DAgger schedule.
+        sim_config: SimConfig for the rollouts (default: the env's simulator config).
+        seed: seed of scenario, condition and coin draws.
+        log: called with one line per round (None: silent).
+    Returns:
+        one dict per round: beta, agreement (argmax = expert before training on the round),
+        cross_entropy, value_mse (after the round), transitions, seconds.
+    """
+    from cpsim.expert import TrackingExpert
+    from cpsim.simulator import Simulator
+
+    cfg = config or ImitationConfig()
+    env = model.get_env()
+    inner = getattr(env, "venv", env)
+    while hasattr(inner, "venv") and not hasattr(inner, "sim"):
+        inner = inner.venv
+    base_sim = getattr(inner, "sim", None)
+    if scenarios is None:
+        if base_sim is None:
+            raise ValueError("scenarios: the model's env is not a SelfPlayVecEnv; pass scenarios")
+        scenarios = base_sim.scenarios
+    scenarios = list(scenarios)
+    if not scenarios:
+        raise ValueError("scenarios: empty")
+    max_agents = base_sim.max_agents if base_sim is not None else 8
+    if sim_config is None and base_sim is not None:
+        sim_config = base_sim.config
+    sim = Simulator(scenarios, num_worlds=cfg.num_worlds, max_agents=max_agents, config=sim_config, seed=seed)
+    if model.observation_space.shape != (sim.obs_layout.size,):
+        raise ValueError(f"model: observation shape {model.observation_space.shape} does not match the "
+                         f"simulator's ({sim.obs_layout.size},)")
+    expert = TrackingExpert(sim)
+    rng = np.random.default_rng(seed)
+    policy = model.policy
+    optimizer = th.optim.Adam(policy.parameters(), lr=cfg.learning_rate)
+    data: list[EpisodeBatch] = []
+    history: list[dict[str, float]] = []
+    gen = th.Generator().manual_seed(seed)
+    for it in range(cfg.iterations):
+        t0 = time.perf_counter()
+        beta = cfg.beta * cfg.decay ** it
+        policy.set_training_mode(False)
+        new = [collect_episodes(policy, sim, expert, beta, rng, cfg.gamma) for _ in range(cfg.episodes)]
+        data.extend(new)
+        data = data[-cfg.keep_rounds * cfg.episodes:]
+        agreement = float(np.mean([b.agreement for b in new]))
+        policy.set_training_mode(True)
+        ce_sum = mse_sum = 0.0
+        steps = 0
+        for _ in range(cfg.epochs):
+            for batch in data:
+                keep = th.nonzero(batch.mask.any(0)).reshape(-1)
+                order = keep[th.randperm(keep.numel(), generator=gen)]
+                for lo in range(0, order.numel(), cfg.batch_sequences):
+                    idx = order[lo:lo + cfg.batch_sequences]
+                    ce, mse = imitation_losses(policy, batch.obs[:, idx].to(policy.device),
+                                               batch.labels[:, idx].to(policy.device),
+                                               batch.mask[:, idx].to(policy.device),
+                                               batch.returns[:, idx].to(policy.device))
+                    loss = ce + cfg.value_coef * mse
+                    optimizer.zero_grad()
+                    loss.backward()
+                    th.nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm)
+                    optimizer.step()
+                    ce_sum += ce.item()
+                    mse_sum += mse.item()
+                    steps += 1
+        policy.set_training_mode(False)
+        row = {"round": it, "beta": beta, "agreement": agreement, "cross_entropy": ce_sum / max(steps, 1),
+               "value_mse": mse_sum / max(steps, 1),
+               "transitions": int(sum(int(b.mask.sum()) for b in new)),
+               "seconds": time.perf_counter() - t0}
+        history.append(row)
+        if log is not None:
+            log(f"imitation round {it}: beta {beta:.3f}  agreement {agreement:.1%}  "
+                f"cross-entropy {row['cross_entropy']:.3f}  value mse {row['value_mse']:.4f}  "
+                f"{row['transitions']} transitions  {row['seconds']:.0f} s")
+    return history

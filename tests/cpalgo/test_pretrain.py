@@ -1,0 +1,100 @@
+"""DAgger warm start from the tracking expert (cpalgo.pretrain)."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+import torch as th
+
+import cpsim
+from cpalgo.pretrain import ImitationConfig, collect_episodes, imitate_expert, imitation_losses
+from cpsim.config import Controller
+from cpsim.expert import TrackingExpert
+
+POLICY_KWARGS = dict(lstm_hidden_size=16, enable_critic_lstm=False, net_arch=dict(pi=[16], vf=[16]))
+
+
+@functools.lru_cache(maxsize=1)
+def _pool() -> tuple:
+    from cpsim.scenario import train_pool
+
+    return tuple(train_pool(3, 0))
+
+
+def _model(num_worlds: int = 2):
+    from sb3_contrib import RecurrentPPO
+
+    env = cpsim.SelfPlayVecEnv(list(_pool()), num_worlds=num_worlds, max_agents=4, seed=0)
+    return RecurrentPPO("MlpLstmPolicy", env, n_steps=8, batch_size=16, seed=0, device="cpu",
+                        policy_kwargs=POLICY_KWARGS)
+
+
+def test_config_rejects_unknown_and_bad_values():
+    with pytest.raises(ValueError, match="unknown keys"):
+        ImitationConfig.from_dict({"iterations": 1, "rounds": 2})
+    with pytest.raises(ValueError, match="beta"):
+        ImitationConfig(beta=1.5)
+    with pytest.raises(ValueError, match="iterations"):
+        ImitationConfig(iterations=0)
+
+
+def test_expert_driven_episode_is_labelled_with_the_actions_it_took():
+    model = _model()
+    sim = cpsim.Simulator(list(_pool()), num_worlds=3, max_agents=4, seed=0)
+    expert = TrackingExpert(sim)
+    batch = collect_episodes(model.policy, sim, expert, beta=1.0, rng=np.random.default_rng(0))
+    T, N, D = batch.obs.shape
+    assert N == 12 and D == sim.obs_layout.size and batch.mask.any()
+    # replay the labels open loop from the same reset: the same world results
+    replay = cpsim.Simulator(list(_pool()), num_worlds=3, max_agents=4, seed=0)
+    replay.reset(scenario_index=sim.world_scenario.numpy(), conditions=sim.conditions.numpy())
+    # masked observations equal the replay's observations at every step
+    for t in range(T):
+        live = ((replay.controllers == int(Controller.POLICY)) & replay.alive).reshape(-1)
+        assert th.equal(live, batch.mask[t])
+        obs = replay.obs.reshape(N, -1) * replay.policy_mask.reshape(-1, 1)
+        assert th.allclose(obs[live], batch.obs[t][live])
+        replay.step(batch.labels[t].reshape(3, 4).to(th.int32))
+    # returns are discounted sums of the per-step rewards of live steps: finite, zero when not live
+    assert th.isfinite(batch.returns).all()
+    assert (batch.returns[~batch.mask] == 0).all()
+
+
+def test_imitation_loss_falls_on_a_fixed_batch():
+    model = _model()
+    sim = cpsim.Simulator(list(_pool()), num_worlds=3, max_agents=4, seed=0)
+    batch = collect_episodes(model.policy, sim, TrackingExpert(sim), beta=1.0, rng=np.random.default_rng(1))
+    opt = th.optim.Adam(model.policy.parameters(), lr=3e-3)
+    first = None
+    for _ in range(30):
+        ce, mse = imitation_losses(model.policy, batch.obs, batch.labels, batch.mask, batch.returns)
+        first = (ce.item(), mse.item()) if first is None else first
+        opt.zero_grad()
+        (ce + mse).backward()
+        opt.step()
+    ce, mse = imitation_losses(model.policy, batch.obs, batch.labels, batch.mask, batch.returns)
+    assert float(ce) < 0.8 * first[0]
+    assert float(mse) < first[1]
+
+
+def test_imitate_expert_trains_the_policy_and_reports_rounds():
+    model = _model()
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    history = imitate_expert(model, config=ImitationConfig(iterations=2, num_worlds=3, epochs=1,
+                                                           batch_sequences=8), log=None)
+    assert [round(h["beta"], 3) for h in history] == [1.0, 0.5]
+    assert all(0.0 <= h["agreement"] <= 1.0 and h["transitions"] > 0 for h in history)
+    assert any(not th.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+    # the trained model still acts in its env
+    obs = model.get_env().reset()
+    actions, _ = model.predict(obs, deterministic=True)
+    assert actions.shape == (model.get_env().num_envs,)
+
+
+def test_imitate_expert_rejects_a_mismatched_observation_space():
+    model = _model()
+    with pytest.raises(ValueError, match="observation shape"):
+        imitate_expert(model, sim_config={"num_partners": 4}, config=ImitationConfig(iterations=1, num_worlds=2),
+                       log=None)
