@@ -121,6 +121,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
             raise SystemExit(f"--init: no such checkpoint {args.init!r}")
         model.set_parameters(args.init, exact_match=True)
     imitation = []
+    t0 = time.perf_counter()
     if args.imitate:  # DAgger warm start from the tracking expert before PPO
         from cpalgo.pretrain import ImitationConfig, imitate_expert
 
@@ -131,7 +132,6 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
             steps = 0
     out = Path(args.out)
     ckpt = AtomicCheckpointCallback(save_freq=max(1, 10 * recipe.algo_kwargs.get("n_steps", 64)), path=out)
-    t0 = time.perf_counter()
     if steps:
         model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0
@@ -141,7 +141,10 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
               "normal_condition_outcomes": rates.as_dict()}
     if imitation:
         report["imitation_rounds"] = imitation
-    Path(str(out.with_suffix("")) + ".json").write_text(json.dumps(report, indent=2))
+    from cpsim.atomic import atomic_path
+
+    with atomic_path(str(out.with_suffix("")) + ".json") as tmp:
+        Path(tmp).write_text(json.dumps(report, indent=2))
     print(f"anchor saved to {out} after {model.num_timesteps} steps in {wall:.0f} s")
     print(f"held-out outcomes under the normal condition: {rates}")
     return 0

@@ -42,6 +42,12 @@ def test_shipped_recipes_parse():
     assert post.algo_kwargs["window"] == (5, 60) and post.algo_kwargs["rho"] == 0.5
     assert anchor.num_worlds * anchor.env_kwargs["max_agents"] == anchor.n_envs
     assert "vec_env_wrapper" not in anchor.algo_kwargs and "env_kwargs" not in anchor.algo_kwargs
+    # the fine-tuning stage of the shipped anchor: the same recipe at a lower learning rate
+    finetune = load_recipe(ZOO_DIR / "anchor_finetune.yml")
+    assert finetune.env_kwargs == anchor.env_kwargs and finetune.n_envs == anchor.n_envs
+    assert finetune.algo_kwargs["learning_rate"] == 3e-4 < anchor.algo_kwargs["learning_rate"]
+    same = {k: v for k, v in finetune.algo_kwargs.items() if k != "learning_rate"}
+    assert same == {k: v for k, v in anchor.algo_kwargs.items() if k != "learning_rate"}
 
 
 @pytest.mark.parametrize("text, match", [
@@ -124,6 +130,25 @@ def test_train_anchor_then_post_train_end_to_end(tmp_path, capsys):
     with pytest.raises(SystemExit, match="--anchor"):
         cli.main(["post-train", "--anchor", str(tmp_path / "nope.zip"), "--config", str(post_cfg),
                   "--out", str(out), "--no-progress"])
+
+
+def test_train_anchor_imitation_warm_start(tmp_path):
+    cfg = tiny_recipe(tmp_path, ZOO_DIR / "anchor.yml")
+    out = tmp_path / "imitation.zip"
+    assert cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "1",
+                     "--imitate-worlds", "2", "--imitate-only", "--eval-tasks", "2", "--no-progress",
+                     "--threads", "1"]) == 0
+    report = json.loads((tmp_path / "imitation.json").read_text())
+    assert report["timesteps"] == 0  # --imitate-only: no PPO step
+    assert [r["round"] for r in report["imitation_rounds"]] == [0]
+    assert report["imitation_rounds"][0]["transitions"] > 0
+    # the warm-started weights continue with PPO through --init
+    cont = tmp_path / "anchor.zip"
+    assert cli.main(["train-anchor", "--config", str(cfg), "--init", str(out), "--out", str(cont),
+                     "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
+    assert json.loads((tmp_path / "anchor.json").read_text())["timesteps"] >= 256
+    with pytest.raises(SystemExit):
+        cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "-1"])
 
 
 def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch):

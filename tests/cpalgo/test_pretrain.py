@@ -75,8 +75,8 @@ def test_imitation_loss_falls_on_a_fixed_batch():
         (ce + mse).backward()
         opt.step()
     ce, mse = imitation_losses(model.policy, batch.obs, batch.labels, batch.mask, batch.returns)
-    assert float(ce) < 0.8 * first[0]
-    assert float(mse) < first[1]
+    assert ce.item() < 0.8 * first[0]
+    assert mse.item() < first[1]
 
 
 def test_imitate_expert_trains_the_policy_and_reports_rounds():
