@@ -259,6 +259,12 @@ def cmd_post_train(args: argparse.Namespace) -> int:
 def cmd_outcomes(args: argparse.Namespace) -> int:
     from sb3_contrib import RecurrentPPO
 
+    if args.model == "expert":  # the tracking expert, the imitation teacher
+        from cpalgo.selfplay_eval import expert_outcomes
+
+        print(expert_outcomes(_held_out(args.tasks), condition=args.condition, max_agents=args.max_agents,
+                              config={"dynamics": args.dynamics}))
+        return 0
     path = Path(args.model)
     if not path.is_file():
         raise SystemExit(f"--model: no such checkpoint {str(path)!r}")
@@ -313,7 +319,10 @@ def build_parser() -> argparse.ArgumentParser:
     ta.set_defaults(func=cmd_train_anchor)
 
     oc = sub.add_parser("outcomes", help="self-play outcome rates of a checkpoint on held-out tasks")
-    oc.add_argument("--model", default=str(DEFAULT_ANCHOR))
+    oc.add_argument("--model", default=str(DEFAULT_ANCHOR),
+                    help="checkpoint, or 'expert' for cpsim.expert.TrackingExpert")
+    oc.add_argument("--dynamics", default="jerk", choices=["jerk", "classic"],
+                    help="dynamics of the simulator for --model expert")
     oc.add_argument("--tasks", type=_positive_int, default=256)
     oc.add_argument("--max-agents", type=_positive_int, default=8)
     oc.add_argument("--condition", default="normal")

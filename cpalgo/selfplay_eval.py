@@ -60,7 +60,6 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
         raise ValueError("scenarios: empty")
     cond = resolve_condition(condition, "condition")
     counts = np.zeros(len(Outcome), np.int64)
-    sim: Simulator | None = None
     for start in range(0, len(scenarios), chunk):
         part = scenarios[start:start + chunk]
         sim = Simulator(part, num_worlds=len(part), max_agents=max_agents, config=config, seed=seed)
@@ -87,6 +86,38 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
                 break
         outcome = sim.outcome[policy_agents].cpu().numpy()
         counts += np.bincount(outcome, minlength=len(Outcome))
+    return _rates(counts, len(scenarios))
+
+
+def expert_outcomes(scenarios: Sequence[Scenario], condition: Any = "normal", max_agents: int = 8,
+                    config: Any = None, chunk: int = 256, seed: int = 0) -> OutcomeRates:
+    """As :func:`selfplay_outcomes`, with every POLICY agent driven by
+    :class:`cpsim.expert.TrackingExpert` (the imitation teacher; an upper reference)."""
+    from cpsim.expert import TrackingExpert
+
+    scenarios = list(scenarios)
+    if not scenarios:
+        raise ValueError("scenarios: empty")
+    cond = resolve_condition(condition, "condition")
+    counts = np.zeros(len(Outcome), np.int64)
+    for start in range(0, len(scenarios), chunk):
+        part = scenarios[start:start + chunk]
+        sim = Simulator(part, num_worlds=len(part), max_agents=max_agents, config=config, seed=seed)
+        W, A = sim.num_worlds, sim.max_agents
+        sim.reset(scenario_index=np.arange(W),
+                  conditions=np.broadcast_to(cond, (W, A, NUM_CONDITION_FIELDS)))
+        policy_agents = (sim.controllers == int(Controller.POLICY)) & sim.alive
+        expert = TrackingExpert(sim)
+        for _ in range(sim.config.episode_steps):
+            sim.step(expert.actions())
+            if bool(sim.world_done.all()):
+                break
+        counts += np.bincount(sim.outcome[policy_agents].cpu().numpy(), minlength=len(Outcome))
+    return _rates(counts, len(scenarios))
+
+
+def _rates(counts: np.ndarray, tasks: int) -> OutcomeRates:
+    counts = counts.copy()
     # an agent still running when the episode ended has timed out
     counts[int(Outcome.TIMEOUT)] += counts[int(Outcome.RUNNING)]
     total = max(int(counts[1:].sum()), 1)
@@ -96,5 +127,5 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
         offroad=counts[int(Outcome.OFFROAD)] / total,
         timeout=counts[int(Outcome.TIMEOUT)] / total,
         agents=int(counts[1:].sum()),
-        tasks=len(scenarios),
+        tasks=tasks,
     )

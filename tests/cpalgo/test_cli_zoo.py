@@ -179,3 +179,10 @@ def test_selfplay_settings_carrier():
         zoo.SelfPlaySettings(render_mode="human")
     assert zoo._translate_config_flag(["-f", "a.yml", "-f2"]) == ["--conf-file", "a.yml", "-f2"]
     assert zoo._translate_config_flag(["-f", "logs/"]) == ["-f", "logs/"]
+
+
+def test_outcomes_command_evaluates_the_tracking_expert(capsys):
+    assert cli.main(["outcomes", "--model", "expert", "--tasks", "6"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    goal = float(line.split("goal ")[1].split("%")[0])
+    assert goal >= 75.0 and "6 tasks" in line  # 95 % on 256 held-out tasks
