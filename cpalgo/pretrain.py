@@ -127,7 +127,6 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
     N = W * A
     pool = rng.integers(0, sim.num_scenarios, size=W)
     sim.reset(scenario_index=pool, conditions=sample_conditions(rng, (W, A)))
-    expert.refresh()
     T = sim.config.episode_steps
     device = policy.device
     states = zero_states(policy, N, device)

@@ -36,9 +36,6 @@ class TrackingGains:
         position_gain: acceleration per m the agent lags behind the logged arc position, 1/s^2.
         lag_cap: largest arc-position error acted on, m (so a far-behind agent does not race).
         stop_speed: logged speed below which the log is treated as stopped, m/s.
-        curve_lat_accel: lateral acceleration the speed is capped to on the path's curves
-            ahead (the jerk model cannot exceed 4 m/s^2), m/s^2.
-        curve_preview: how far ahead along the path curves are anticipated, m.
     """
 
     lookahead_min: float = 4.0
@@ -48,8 +45,6 @@ class TrackingGains:
     position_gain: float = 0.3
     lag_cap: float = 5.0
     stop_speed: float = 0.3
-    curve_lat_accel: float = 3.0
-    curve_preview: float = 25.0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -85,7 +80,7 @@ class TrackingExpert:
         log_xy = torch.as_tensor(m.log_xy.numpy().view(np.float32).reshape(*m.path_s.shape, 2))
         self._log_speed = torch.linalg.norm(log_vel, dim=-1)
         self._log_s = self._log_arc(log_xy)
-        self._agent_row = torch.as_tensor(wp_numpy(sim.state.agent_row)).long()
+        self._agent_row = wp.to_torch(sim.state.agent_row)  # live view: follows every reset
         self.dynamics = sim.config.dynamics
         T = self._path_s.shape[1]
         self._k = torch.arange(T)
@@ -104,10 +99,6 @@ class TrackingExpert:
         valid = self._log_valid[rows] & (self._k[None, :] <= t[:, None])
         k_last = (valid.long() * self._k[None, :]).amax(1)
         return values[rows, k_last]
-
-    def refresh(self) -> None:
-        """Re-read the slot -> log row table (call after ``sim.reset`` changed scenarios)."""
-        self._agent_row = torch.as_tensor(wp_numpy(self.sim.state.agent_row)).long()
 
     def _path_point(self, rows: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         """Position at arc length s along each row's path (N,) -> (N, 2); past the end the
@@ -133,7 +124,7 @@ class TrackingExpert:
         """Desired (longitudinal acceleration, lateral acceleration) per slot, (W, A) m/s^2."""
         sim, g = self.sim, self.gains
         W, A = sim.num_worlds, sim.max_agents
-        rows = self._agent_row.reshape(-1)
+        rows = self._agent_row.reshape(-1).long()
         have = rows >= 0
         rows = rows.clamp(min=0)
         pos = sim.xy.reshape(-1, 2)
@@ -175,19 +166,6 @@ class TrackingExpert:
         s_log = self._logged(self._log_s, rows, t_now)  # where the log is now
         lag = (s_log - s_proj).clamp(-g.lag_cap, g.lag_cap)
         v_ref = v_log + g.position_gain / max(g.speed_gain, 1e-6) * lag
-        # slow down for the curves ahead: v^2 kappa <= curve_lat_accel, reachable by braking
-        for ahead in (0.0, 0.25, 0.5, 0.75, 1.0):
-            d = ahead * g.curve_preview
-            p0 = self._path_point(rows, s_proj + d)
-            p1 = self._path_point(rows, s_proj + d + 4.0)
-            p2 = self._path_point(rows, s_proj + d + 8.0)
-            h0 = torch.atan2(p1[:, 1] - p0[:, 1], p1[:, 0] - p0[:, 0])
-            h1 = torch.atan2(p2[:, 1] - p1[:, 1], p2[:, 0] - p1[:, 0])
-            turn = torch.remainder(h1 - h0 + np.pi, 2 * np.pi) - np.pi
-            kappa_c = turn.abs() / 4.0
-            v_curve = torch.sqrt(g.curve_lat_accel / kappa_c.clamp(min=1e-4))
-            v_allowed = torch.sqrt(v_curve ** 2 + 2.0 * 2.0 * d)  # braking at 2 m/s^2
-            v_ref = torch.minimum(v_ref, v_allowed)
         a_long = g.speed_gain * (v_ref - v)
         stopped = (v_log < g.stop_speed) & (lag < 0.5)
         a_long = torch.where(stopped, -2.0 * v.clamp(min=0.0) / 0.5, a_long)
@@ -225,10 +203,6 @@ def _jerk_next(a: torch.Tensor, delta: torch.Tensor, bounds: tuple[float, float]
     """The jerk model's next acceleration for every candidate increment (sign change -> 0)."""
     new = a + delta
     return torch.where(a * new < 0.0, torch.zeros_like(new), new.clamp(*bounds))
-
-
-def wp_numpy(array) -> np.ndarray:
-    return array.numpy()
 
 
 __all__ = ["TrackingExpert", "TrackingGains"]
