@@ -8,7 +8,7 @@ per task, all tasks batched as worlds of one :class:`cpsim.Simulator`.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -55,14 +55,7 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
         config: SimConfig (or dict) of the simulator; default SimConfig().
         chunk: worlds per simulator batch.
     """
-    scenarios = list(scenarios)
-    if not scenarios:
-        raise ValueError("scenarios: empty")
-    cond = resolve_condition(condition, "condition")
-    counts = np.zeros(len(Outcome), np.int64)
-    for start in range(0, len(scenarios), chunk):
-        part = scenarios[start:start + chunk]
-        sim = Simulator(part, num_worlds=len(part), max_agents=max_agents, config=config, seed=seed)
+    def drive(sim: Simulator) -> None:
         obs_size = sim.obs_layout.size
         if model.observation_space.shape != (obs_size,):
             raise ValueError(
@@ -70,9 +63,6 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
                 f"simulator's ({obs_size},)"
             )
         W, A = sim.num_worlds, sim.max_agents
-        sim.reset(scenario_index=np.arange(W),
-                  conditions=np.broadcast_to(cond, (W, A, NUM_CONDITION_FIELDS)))
-        policy_agents = (sim.controllers == int(Controller.POLICY)) & sim.alive
         state = None
         starts = np.ones(W * A, bool)
         for _ in range(sim.config.episode_steps):
@@ -84,9 +74,8 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
             sim.step(torch.as_tensor(np.asarray(actions).reshape(W, A), dtype=torch.int32))
             if bool(sim.world_done.all()):
                 break
-        outcome = sim.outcome[policy_agents].cpu().numpy()
-        counts += np.bincount(outcome, minlength=len(Outcome))
-    return _rates(counts, len(scenarios))
+
+    return _episode_outcomes(drive, scenarios, condition, max_agents, config, chunk, seed)
 
 
 def expert_outcomes(scenarios: Sequence[Scenario], condition: Any = "normal", max_agents: int = 8,
@@ -95,6 +84,20 @@ def expert_outcomes(scenarios: Sequence[Scenario], condition: Any = "normal", ma
     :class:`cpsim.expert.TrackingExpert` (the imitation teacher; an upper reference)."""
     from cpsim.expert import TrackingExpert
 
+    def drive(sim: Simulator) -> None:
+        expert = TrackingExpert(sim)
+        for _ in range(sim.config.episode_steps):
+            sim.step(expert.actions())
+            if bool(sim.world_done.all()):
+                break
+
+    return _episode_outcomes(drive, scenarios, condition, max_agents, config, chunk, seed)
+
+
+def _episode_outcomes(drive: Callable[[Simulator], None], scenarios: Sequence[Scenario], condition: Any,
+                      max_agents: int, config: Any, chunk: int, seed: int) -> OutcomeRates:
+    """One episode per scenario, ``chunk`` worlds per simulator, every policy agent under
+    ``condition``; ``drive(sim)`` runs the episode from the reset; POLICY outcomes counted."""
     scenarios = list(scenarios)
     if not scenarios:
         raise ValueError("scenarios: empty")
@@ -107,11 +110,7 @@ def expert_outcomes(scenarios: Sequence[Scenario], condition: Any = "normal", ma
         sim.reset(scenario_index=np.arange(W),
                   conditions=np.broadcast_to(cond, (W, A, NUM_CONDITION_FIELDS)))
         policy_agents = (sim.controllers == int(Controller.POLICY)) & sim.alive
-        expert = TrackingExpert(sim)
-        for _ in range(sim.config.episode_steps):
-            sim.step(expert.actions())
-            if bool(sim.world_done.all()):
-                break
+        drive(sim)
         counts += np.bincount(sim.outcome[policy_agents].cpu().numpy(), minlength=len(Outcome))
     return _rates(counts, len(scenarios))
 
