@@ -25,6 +25,7 @@ import numpy as np
 import torch as th
 import torch.nn.functional as F
 
+from cpalgo.common.policy_utils import actor_logits, critic_values, policy_step_logits, zero_states
 from cpsim.conditions import sample_conditions
 from cpsim.config import Controller
 from cpsim.envs.selfplay import OBS_BOUND
@@ -121,8 +122,6 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
     per-agent coin, so rounds mix expert and policy agents in the same worlds) and its
     own sampled action otherwise. Conditions are drawn from p_train per agent.
     """
-    from cpalgo.common.policy_utils import policy_step_logits, zero_states
-
     W, A = sim.num_worlds, sim.max_agents
     N = W * A
     pool = rng.integers(0, sim.num_scenarios, size=W)
@@ -167,13 +166,9 @@ def _sequence_forward(policy, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
     """Logits (T, B, n_actions) and values (T, B) of whole episodes from a zero memory."""
     T, B, D = obs.shape
     flat = obs.swapaxes(0, 1).reshape(B * T, D)  # sequence-major, as sb3-contrib expects
-    from cpalgo.common.policy_utils import zero_states
-
     states = zero_states(policy, B, obs.device)
     starts = th.zeros(B * T, device=obs.device)
     starts[::T] = 1.0
-    from cpalgo.common.policy_utils import actor_logits, critic_values
-
     logits = actor_logits(policy, flat, states.pi, starts)[0]
     values = critic_values(policy, flat, states.vf, starts)
     return logits.reshape(B, T, -1).swapaxes(0, 1), values.reshape(B, T).swapaxes(0, 1)
