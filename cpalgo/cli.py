@@ -45,6 +45,13 @@ def _non_negative_int(text: str) -> int:
     return value
 
 
+def _unit_float(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
+    return value
+
+
 def _set_threads(threads: int | None) -> None:
     import torch
 
@@ -126,7 +133,9 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         from cpalgo.pretrain import ImitationConfig, imitate_expert
 
         imitation = imitate_expert(model, config=ImitationConfig(iterations=args.imitate,
-                                                                 num_worlds=args.imitate_worlds),
+                                                                 num_worlds=args.imitate_worlds,
+                                                                 epochs=args.imitate_epochs,
+                                                                 beta=args.imitate_beta),
                                    seed=args.seed)
         if args.imitate_only:
             steps = 0
@@ -314,6 +323,11 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--imitate", type=_non_negative_int, default=0, metavar="ROUNDS",
                     help="DAgger rounds imitating cpsim.expert.TrackingExpert before PPO (default 0: none)")
     ta.add_argument("--imitate-worlds", type=_positive_int, default=128, help="worlds per DAgger round")
+    ta.add_argument("--imitate-epochs", type=_positive_int, default=10,
+                    help="passes over the kept DAgger data per round")
+    ta.add_argument("--imitate-beta", type=_unit_float, default=1.0,
+                    help="probability that the expert drives in the first DAgger round (lower it when "
+                         "continuing an imitation run with --init)")
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256)
     ta.set_defaults(func=cmd_train_anchor)

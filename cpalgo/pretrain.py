@@ -206,7 +206,7 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         log: called with one line per round (None: silent).
     Returns:
         one dict per round: beta, agreement (argmax = expert before training on the round),
-        cross_entropy, value_mse (after the round), transitions, seconds.
+        cross_entropy, value_mse (mean training losses of the round's last epoch), transitions, seconds.
     """
     from cpsim.expert import TrackingExpert
     from cpsim.simulator import Simulator
@@ -247,9 +247,9 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         data = data[-cfg.keep_rounds * cfg.episodes:]
         agreement = float(np.mean([b.agreement for b in new]))
         policy.set_training_mode(True)
-        ce_sum = mse_sum = 0.0
-        steps = 0
         for _ in range(cfg.epochs):
+            ce_sum = mse_sum = 0.0  # the round reports its last epoch's training losses
+            steps = 0
             for batch in data:
                 keep = th.nonzero(batch.mask.any(0)).reshape(-1)
                 order = keep[th.randperm(keep.numel(), generator=gen)]

@@ -136,11 +136,12 @@ def test_train_anchor_imitation_warm_start(tmp_path):
     cfg = tiny_recipe(tmp_path, ZOO_DIR / "anchor.yml")
     out = tmp_path / "imitation.zip"
     assert cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "1",
-                     "--imitate-worlds", "2", "--imitate-only", "--eval-tasks", "2", "--no-progress",
-                     "--threads", "1"]) == 0
+                     "--imitate-worlds", "2", "--imitate-epochs", "1", "--imitate-beta", "0.5",
+                     "--imitate-only", "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
     report = json.loads((tmp_path / "imitation.json").read_text())
     assert report["timesteps"] == 0  # --imitate-only: no PPO step
     assert [r["round"] for r in report["imitation_rounds"]] == [0]
+    assert report["imitation_rounds"][0]["beta"] == 0.5
     assert report["imitation_rounds"][0]["transitions"] > 0
     # the warm-started weights continue with PPO through --init
     cont = tmp_path / "anchor.zip"
@@ -149,6 +150,8 @@ def test_train_anchor_imitation_warm_start(tmp_path):
     assert json.loads((tmp_path / "anchor.json").read_text())["timesteps"] >= 256
     with pytest.raises(SystemExit):
         cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "-1"])
+    with pytest.raises(SystemExit):
+        cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "1", "--imitate-beta", "2"])
 
 
 def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch):
