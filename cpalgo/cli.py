@@ -144,6 +144,10 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     if steps:
         model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0
+    if args.drop_optimizer_state:  # Adam's moments triple the file; a later run restarts them
+        policy = model.policy
+        policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
+                                                  **policy.optimizer_kwargs)
     save_model_atomic(model, out)
     rates = _outcomes(model, args.eval_tasks, recipe.env_kwargs.get("max_agents", 8))
     report = {"command": " ".join(sys.argv), "timesteps": int(model.num_timesteps), "wall_s": round(wall, 1),
@@ -329,6 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="probability that the expert drives in the first DAgger round (lower it when "
                          "continuing an imitation run with --init)")
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
+    ta.add_argument("--drop-optimizer-state", action="store_true",
+                    help="save the final checkpoint with a fresh optimiser (weights only: a third of the size)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256)
     ta.set_defaults(func=cmd_train_anchor)
 

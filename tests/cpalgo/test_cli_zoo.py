@@ -148,6 +148,16 @@ def test_train_anchor_imitation_warm_start(tmp_path):
     assert cli.main(["train-anchor", "--config", str(cfg), "--init", str(out), "--out", str(cont),
                      "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
     assert json.loads((tmp_path / "anchor.json").read_text())["timesteps"] >= 256
+    # weights only: the same parameters without Adam's moments, and still loadable
+    slim = tmp_path / "slim.zip"
+    assert cli.main(["train-anchor", "--config", str(cfg), "--init", str(cont), "--out", str(slim),
+                     "--timesteps", "1", "--drop-optimizer-state", "--eval-tasks", "2", "--no-progress",
+                     "--threads", "1"]) == 0
+    from sb3_contrib import RecurrentPPO
+
+    full, thin = RecurrentPPO.load(cont, device="cpu"), RecurrentPPO.load(slim, device="cpu")
+    assert full.policy.optimizer.state_dict()["state"] and not thin.policy.optimizer.state_dict()["state"]
+    assert slim.stat().st_size < cont.stat().st_size
     with pytest.raises(SystemExit):
         cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "-1"])
     with pytest.raises(SystemExit):
