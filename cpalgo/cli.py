@@ -144,7 +144,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     if steps:
         model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0
-    if args.drop_optimizer_state:  # Adam's moments triple the file; a later run restarts them
+    if args.drop_optimizer_state:  # Adam's moments double the file; a later run restarts them
         policy = model.policy
         policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
                                                   **policy.optimizer_kwargs)
@@ -334,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "continuing an imitation run with --init)")
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
     ta.add_argument("--drop-optimizer-state", action="store_true",
-                    help="save the final checkpoint with a fresh optimiser (weights only: a third of the size)")
+                    help="save the final checkpoint with a fresh optimiser (weights only: about half the size)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256)
     ta.set_defaults(func=cmd_train_anchor)
 

@@ -148,7 +148,7 @@ def test_train_anchor_imitation_warm_start(tmp_path):
     assert cli.main(["train-anchor", "--config", str(cfg), "--init", str(out), "--out", str(cont),
                      "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
     assert json.loads((tmp_path / "anchor.json").read_text())["timesteps"] >= 256
-    # weights only: the same parameters without Adam's moments, and still loadable
+    # weights only: no Adam moments, a smaller file, still loadable
     slim = tmp_path / "slim.zip"
     assert cli.main(["train-anchor", "--config", str(cfg), "--init", str(cont), "--out", str(slim),
                      "--timesteps", "1", "--drop-optimizer-state", "--eval-tasks", "2", "--no-progress",
