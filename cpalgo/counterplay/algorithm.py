@@ -49,9 +49,11 @@ from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
 from cpalgo.common.buffers import MaskedRecurrentDictRolloutBuffer, MaskedRecurrentRolloutBuffer
 from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits
+from cpalgo.policies import POLICY_ALIASES
 from cpalgo.counterplay.branches import BranchJob, BranchResult, BranchRunner
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, collate_teachers, distill_loss
+from cpalgo.counterplay.records import check_keep_searches, keep_wave
 from cpalgo.counterplay.roots import RootStore, SearchRequest
 from cpalgo.counterplay.search import (
     BACKTRACK_MODES,
@@ -119,14 +121,18 @@ class CounterPlay(RecurrentPPO):
         post_budget: stop ``learn`` once main + branch transitions reach it (None: never).
         mask_inactive: mask inactive slots (``info["active"]`` / ``env.active_mask()``).
         max_searches: optional cap on searches per generation (None: the budget decides).
+        keep_searches: searches kept per generation as tensor-free records for inspection
+            (``cpalgo.counterplay.records``; 0 keeps nothing).
     """
 
-    policy_aliases: ClassVar = RecurrentPPO.policy_aliases
+    #: "MlpLstmPolicy" & co. are the fused-sequence versions (cpalgo.policies); pass
+    #: sb3-contrib's classes explicitly to get its stepping LSTM
+    policy_aliases: ClassVar = POLICY_ALIASES
 
     #: runtime state that is rebuilt, never saved
     _RUNTIME_ATTRS: ClassVar[tuple[str, ...]] = (
         "_roots", "_runner", "_requests", "_teachers", "_uniform_generator", "_last_active",
-        "_step_count_before", "_gen_stats", "_deploy_raw", "_sim_for_roots",
+        "_step_count_before", "_gen_stats", "_deploy_raw", "_sim_for_roots", "_search_records",
     )
 
     def __init__(
@@ -173,6 +179,7 @@ class CounterPlay(RecurrentPPO):
         post_budget: int | None = None,
         mask_inactive: bool = True,
         max_searches: int | None = None,
+        keep_searches: int = 4,
         _init_setup_model: bool = True,
     ):
         super().__init__(
@@ -220,6 +227,7 @@ class CounterPlay(RecurrentPPO):
         self.post_budget = post_budget
         self.mask_inactive = bool(mask_inactive)
         self.max_searches = max_searches
+        self.keep_searches = check_keep_searches(keep_searches)
         self._validate_settings()
         self.budget = Budget(branch_cap=float(branch_cap), post_budget=post_budget)
         self._reset_runtime()
@@ -361,6 +369,8 @@ class CounterPlay(RecurrentPPO):
             gae_lambda=self.gae_lambda,
             n_envs=self.n_envs,
         )
+        # inactive slots cost no forward/backward pass in train (see cpalgo.common.buffers)
+        self.rollout_buffer.active_only = self.mask_inactive
 
         # Initialize schedules for policy/value clipping
         self.clip_range = FloatSchedule(self.clip_range)
@@ -476,6 +486,10 @@ class CounterPlay(RecurrentPPO):
                 if self._branching:
                     actions, values, log_probs, lstm_states = self._branching_policy_step(
                         env, obs_tensor, lstm_states, episode_starts
+                    )
+                elif self.mask_inactive:
+                    actions, values, log_probs, lstm_states = self._active_policy_step(
+                        obs_tensor, lstm_states, episode_starts
                     )
                 else:
                     actions, values, log_probs, lstm_states = self.policy(obs_tensor, lstm_states, episode_starts)
@@ -646,11 +660,54 @@ class CounterPlay(RecurrentPPO):
 
         return make
 
+    def _active_index(self, n: int) -> th.Tensor | None:
+        """Indices of the slots whose observation belongs to a live agent, or None when
+        every slot does (then the network runs on the full batch)."""
+        active = self._last_active
+        if active is None or active.size != n or active.all():
+            return None
+        return th.as_tensor(np.flatnonzero(active), device=self.device)
+
+    @staticmethod
+    def _take_states(states: RNNStates, idx: th.Tensor) -> RNNStates:
+        return RNNStates((states.pi[0][:, idx], states.pi[1][:, idx]), (states.vf[0][:, idx], states.vf[1][:, idx]))
+
+    @staticmethod
+    def _put_states(states: RNNStates, idx: th.Tensor, part: RNNStates) -> RNNStates:
+        """``states`` with the columns ``idx`` replaced by ``part`` (inactive slots keep
+        their memory; they restart with an episode start when they come back)."""
+        def put(full: th.Tensor, sub: th.Tensor) -> th.Tensor:
+            out = full.clone()
+            out[:, idx] = sub
+            return out
+
+        return RNNStates((put(states.pi[0], part.pi[0]), put(states.pi[1], part.pi[1])),
+                         (put(states.vf[0], part.vf[0]), put(states.vf[1], part.vf[1])))
+
+    def _active_policy_step(
+        self, obs_tensor: th.Tensor, lstm_states: RNNStates, episode_starts: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, RNNStates]:
+        """``policy.forward`` on the live slots only; inactive slots get action 0, value 0
+        and log-prob 0, which the masked buffer never uses."""
+        n = obs_tensor.shape[0]
+        idx = self._active_index(n)
+        if idx is None:
+            return self.policy(obs_tensor, lstm_states, episode_starts)
+        actions, values, log_probs, states = self.policy(
+            obs_tensor[idx], self._take_states(lstm_states, idx), episode_starts[idx]
+        )
+        full_actions = th.zeros((n, *actions.shape[1:]), dtype=actions.dtype, device=self.device)
+        full_values = th.zeros((n, *values.shape[1:]), dtype=values.dtype, device=self.device)
+        full_log_probs = th.zeros(n, dtype=log_probs.dtype, device=self.device)
+        full_actions[idx], full_values[idx], full_log_probs[idx] = actions, values, log_probs
+        return full_actions, full_values, full_log_probs, self._put_states(lstm_states, idx, states)
+
     def _branching_policy_step(
         self, env: VecEnv, obs_tensor: th.Tensor, lstm_states: RNNStates, episode_starts: th.Tensor
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor, RNNStates]:
-        """Roots (before the decision), one actor+critic pass, inverse-CDF sampling from
-        fresh recorded uniforms, trace of values / uniforms / actions."""
+        """Roots (before the decision), one actor+critic pass over the live slots,
+        inverse-CDF sampling from fresh recorded uniforms, trace of values / uniforms /
+        actions (inactive slots: value 0, action 0)."""
         assert self._roots is not None and self._uniform_generator is not None
         sim = env.sim
         step_count = _to_numpy(sim.step_count).astype(np.int64).copy()
@@ -665,10 +722,26 @@ class CounterPlay(RecurrentPPO):
             alive = _to_numpy(sim.policy_mask)[due].sum(axis=1)
             self._roots.store(due, step_count[due], snapshot, pi, vf, conditions, alive)
 
-        logits, values, new_states = policy_step_logits(self.policy, obs_tensor, lstm_states, episode_starts)
-        uniforms = th.rand(obs_tensor.shape[0], generator=self._uniform_generator).to(self.device)
-        actions = inverse_cdf_sample(logits, uniforms)
-        log_probs = th.log_softmax(logits, dim=-1).gather(-1, actions[:, None]).squeeze(-1)
+        n = obs_tensor.shape[0]
+        # one draw per slot whether or not it is live, so the stream does not depend on activity
+        uniforms = th.rand(n, generator=self._uniform_generator).to(self.device)
+        idx = self._active_index(n) if self.mask_inactive else None
+        if idx is None:
+            logits, values, new_states = policy_step_logits(self.policy, obs_tensor, lstm_states, episode_starts)
+            actions = inverse_cdf_sample(logits, uniforms)
+            log_probs = th.log_softmax(logits, dim=-1).gather(-1, actions[:, None]).squeeze(-1)
+        else:
+            logits, sub_values, sub_states = policy_step_logits(
+                self.policy, obs_tensor[idx], self._take_states(lstm_states, idx), episode_starts[idx]
+            )
+            sub_actions = inverse_cdf_sample(logits, uniforms[idx])
+            actions = th.zeros(n, dtype=th.int64, device=self.device)
+            values = th.zeros((n, 1), dtype=sub_values.dtype, device=self.device)
+            log_probs = th.zeros(n, dtype=logits.dtype, device=self.device)
+            actions[idx] = sub_actions
+            values[idx] = sub_values
+            log_probs[idx] = th.log_softmax(logits, dim=-1).gather(-1, sub_actions[:, None]).squeeze(-1)
+            new_states = self._put_states(lstm_states, idx, sub_states)
         self._roots.record_step(step_count, values.reshape(-1).cpu().numpy(), uniforms.cpu().numpy(),
                                 actions.cpu().numpy())
         return actions, values, log_probs, new_states
@@ -828,6 +901,7 @@ class CounterPlay(RecurrentPPO):
                 passed[k] = verify(vres.outcomes[0], vres.outcomes[1])
             stats["verified"] += int(sum(passed))
             stats["verification_failed"] += len(chosen) - int(sum(passed))
+        keep_wave(self, accepted, results, chosen, passed, vresults if self.verify and chosen else None)
 
         for (req, job, res, j), ok in zip(chosen, passed):
             if not ok:
@@ -961,8 +1035,7 @@ class CounterPlay(RecurrentPPO):
         distill_losses: list[float] = []
         distill_at: set[int] = set()
         if distill_batch is not None:
-            n_samples = self.n_steps * self.n_envs
-            per_epoch = 1 if self.batch_size is None else -(-n_samples // self.batch_size)
+            per_epoch = self.rollout_buffer.num_minibatches(self.batch_size)
             distill_at = self._distill_schedule(self.n_epochs * per_epoch)
             self._teachers = []
         distill_pending = len(distill_at)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch as th
 from sb3_contrib import RecurrentPPO
+from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from stable_baselines3.common.env_util import make_vec_env
 
 from cpalgo import CounterPlay
@@ -36,7 +37,8 @@ def test_features_off_is_bit_identical_to_recurrent_ppo():
     init = _params(parent)
     parent.learn(256)
     env = make_vec_env("CartPole-v1", n_envs=2, seed=3)
-    child = CounterPlay("MlpLstmPolicy", env, seed=3, **OFF, **SMALL).learn(256)
+    # "MlpLstmPolicy" means the fused policy for CounterPlay; the stock class is the reference
+    child = CounterPlay(RecurrentActorCriticPolicy, env, seed=3, **OFF, **SMALL).learn(256)
     a, b = _params(parent), _params(child)
     assert a.keys() == b.keys()
     assert all(th.equal(a[k], b[k]) for k in a)
