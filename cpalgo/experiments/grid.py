@@ -1,0 +1,429 @@
+"""Grid files: which post-training runs an experiment holds and how they are evaluated.
+
+A grid file is YAML (``zoo/experiments/paper_small.yml`` is the reference)::
+
+    name: paper_small
+    anchor: zoo/anchor.zip              # checkpoint every method starts from
+    recipe: zoo/counterplay.yml         # PPO settings, network and env shared by every method
+    budget: 150000                      # B_post of every run (live agent transitions)
+    seeds: [0, 1, 2]
+    methods: all                        # or a list of registry names (counterplay methods)
+    overrides: {learning_rate: cosine(3e-5)}   # algorithm arguments over the recipe's (all methods)
+    env: {num_scenarios: 192}           # SelfPlayVecEnv arguments over the recipe's env_kwargs
+    worlds: 32                          # training worlds (default: the recipe's n_envs / max_agents)
+    method_settings: {ppo-opponent: {opponent_fraction: 0.25}}
+    checkpoint_every: 2                 # generations between resumable checkpoints
+    torch_threads: 1                    # torch threads of each run
+    device: cpu
+    resources: {num_cpus: 1, num_gpus: 0}     # what each Ray task declares
+    evaluation:
+      tasks: 50                         # per split
+      splits: [interactive, random]
+      regimes: all                      # BehaviorBench's eight, or a list
+      deployments: {normal: all, halfway: [anchor, ppo-continue, counterplay]}
+      pool: procedural                  # or a folder of WOMD files
+      seed: 0
+      traffic_policy: null              # co-player checkpoint (default: the anchor)
+      max_worlds: 256
+
+Every key is checked before anything runs: an unknown key, an unknown method, a budget
+<= 0, a missing anchor or recipe, an unknown deployment condition or regime, a setting a
+method does not take, each raise :class:`GridError` (a ``ValueError``) whose one-line
+message starts with the file and names the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.resources
+import json
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import yaml
+
+__all__ = ["GridError", "GridConfig", "EvalSettings", "RunSpec", "load_grid", "resolve_grid_path", "ANCHOR"]
+
+#: Name of the anchor's pseudo-method (its evaluations, the reference of every table).
+ANCHOR = "anchor"
+_TOP_KEYS = ("name", "anchor", "recipe", "budget", "seeds", "methods", "overrides", "env", "worlds",
+             "method_settings", "checkpoint_every", "torch_threads", "device", "resources", "evaluation",
+             "description")
+_EVAL_KEYS = ("tasks", "splits", "regimes", "deployments", "pool", "pool_size", "seed", "traffic_policy",
+              "bc_policy", "max_worlds", "max_agents", "sim_config")
+_RESOURCE_KEYS = ("num_cpus", "num_gpus", "memory")
+
+
+class GridError(ValueError):
+    """A grid file that cannot run; the message is one line naming the file and the key."""
+
+
+def resolve_grid_path(path: str | os.PathLike) -> str:
+    """``path`` when it exists; ``zoo/...`` -> the file shipped in ``cpalgo/shipped/...``
+    (so ``zoo/experiments/paper_small.yml`` works after a plain ``pip install``)."""
+    if os.path.exists(path):
+        return str(path)
+    parts = Path(path).parts
+    if len(parts) >= 2 and parts[0] == "zoo":
+        res = importlib.resources.files("cpalgo") / "shipped"
+        for part in parts[1:]:
+            res = res / part
+        if res.is_file():
+            from cpalgo.recipes import resolve_path
+
+            if len(parts) == 2:
+                return resolve_path(path)
+            return str(res)  # package data of an ordinary (unzipped) install
+    return str(path)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalSettings:
+    """How every run (and the anchor) is evaluated: the evaluator's tasks, regimes and
+    deployment conditions (see :mod:`cpalgo.evaluate.runner`).
+
+    Attributes:
+        tasks: tasks per split (Interactive-N, Random-N).
+        splits: ``interactive`` and/or ``random``.
+        regimes: traffic regimes (canonical names).
+        deployments: deployment condition -> the methods evaluated under it (``anchor``
+            included). Profile names (``normal``, ``halfway``, ``aggressive``, ...).
+        pool, pool_size, seed: the evaluation pool (:func:`cpalgo.evaluate.make_tasks`).
+        traffic_policy, bc_policy: co-player checkpoints (None: the anchor; the shipped BC model).
+        max_worlds, max_agents: simulator size of the evaluator.
+        sim_config: SimConfig overrides of the evaluator (must give the training layout).
+    """
+
+    tasks: int = 50
+    splits: tuple[str, ...] = ("interactive", "random")
+    regimes: tuple[str, ...] = ()
+    deployments: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+    pool: str = "procedural"
+    pool_size: int | None = None
+    seed: int = 0
+    traffic_policy: str | None = None
+    bc_policy: str | None = None
+    max_worlds: int = 256
+    max_agents: int | None = None
+    sim_config: Mapping[str, Any] | None = None
+
+    @property
+    def split_arg(self) -> str:
+        return "both" if set(self.splits) == {"interactive", "random"} else self.splits[0]
+
+    def deployments_of(self, method: str) -> tuple[str, ...]:
+        """Deployment conditions ``method`` is evaluated under, in grid order."""
+        return tuple(d for d, methods in self.deployments.items() if method in methods)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """One post-training run of a grid (or the anchor's evaluations: ``method == ANCHOR``)."""
+
+    method: str
+    seed: int | None
+
+    @property
+    def key(self) -> str:
+        return ANCHOR if self.method == ANCHOR else f"{self.method}/seed{self.seed}"
+
+    def __str__(self) -> str:
+        return self.key
+
+
+@dataclasses.dataclass(frozen=True)
+class GridConfig:
+    """A validated grid (see the module docstring for the keys)."""
+
+    path: str
+    name: str
+    anchor: str
+    recipe: str
+    budget: int
+    seeds: tuple[int, ...]
+    methods: tuple[str, ...]
+    overrides: Mapping[str, Any]
+    env: Mapping[str, Any]
+    worlds: int | None
+    method_settings: Mapping[str, Mapping[str, Any]]
+    evaluation: EvalSettings
+    checkpoint_every: int = 2
+    torch_threads: int = 1
+    device: str = "cpu"
+    resources: Mapping[str, float] = dataclasses.field(default_factory=lambda: {"num_cpus": 1, "num_gpus": 0})
+    description: str = ""
+
+    def runs(self) -> list[RunSpec]:
+        """The anchor's evaluations, then every (method, seed), seeds outermost."""
+        return [RunSpec(ANCHOR, None)] + [RunSpec(m, s) for s in self.seeds for m in self.methods]
+
+    def settings_of(self, method: str) -> dict[str, Any]:
+        """Algorithm arguments of ``method``'s runs on top of the recipe's: the grid's
+        overrides, then its ``method_settings`` (the registry's own settings come first)."""
+        return {**dict(self.overrides), **dict(self.method_settings.get(method, {}))}
+
+    def run_fingerprint(self) -> dict[str, Any]:
+        """What a finished run depends on (a folder of another grid must not be resumed)."""
+        anchor = Path(self.anchor)
+        return {
+            "anchor": str(anchor.resolve()), "anchor_bytes": anchor.stat().st_size,
+            "recipe_sha1": hashlib.sha1(Path(self.recipe).read_bytes()).hexdigest(),
+            "budget": self.budget, "overrides": _jsonable(self.overrides), "env": _jsonable(self.env),
+            "worlds": self.worlds, "method_settings": _jsonable(self.method_settings),
+            "evaluation": _jsonable({k: v for k, v in dataclasses.asdict(self.evaluation).items()
+                                     if k != "deployments"}),
+        }
+
+    def as_dict(self) -> dict[str, Any]:
+        return _jsonable(dataclasses.asdict(self))
+
+
+def _jsonable(x: Any) -> Any:
+    return json.loads(json.dumps(x, default=lambda o: list(o) if isinstance(o, (tuple, set)) else str(o)))
+
+
+# ----------------------------------------------------------------------------- parsing
+def _fail(where: str, key: str, message: str) -> GridError:
+    return GridError(f"{where}: {key}: {message}")
+
+
+def _whole(value: Any, where: str, key: str, minimum: int) -> int:
+    if isinstance(value, bool):
+        raise _fail(where, key, f"expected a whole number, got {value!r}")
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        raise _fail(where, key, f"expected a whole number, got {value!r}") from None
+    if not f.is_integer():
+        raise _fail(where, key, f"expected a whole number, got {value!r}")
+    if f < minimum:
+        raise _fail(where, key, f"must be >= {minimum}, got {value!r}" if minimum != 1 else f"must be > 0, got {value!r}")
+    return int(f)
+
+
+def _mapping(value: Any, where: str, key: str) -> dict[str, Any]:
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise _fail(where, key, f"expected a mapping, got {type(value).__name__}")
+    return dict(value)
+
+
+def _names(value: Any, where: str, key: str) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if not isinstance(value, Sequence) or not value:
+        raise _fail(where, key, f"expected a name or a non-empty list of names, got {value!r}")
+    return [str(v) for v in value]
+
+
+def _existing(value: Any, where: str, key: str, base: Path, what: str) -> str:
+    if not isinstance(value, (str, os.PathLike)) or not str(value):
+        raise _fail(where, key, f"expected a path, got {value!r}")
+    for candidate in (resolve_grid_path(value), str(base / str(value))):
+        if os.path.isfile(candidate):
+            return candidate
+    raise _fail(where, key, f"no such {what} {str(value)!r}")
+
+
+def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | os.PathLike | None = None) -> GridConfig:
+    """Read and validate a grid (a YAML path, ``zoo/experiments/...``, or a mapping).
+
+    Relative paths inside the grid are tried as given (and ``zoo/NAME``) first, then
+    relative to the grid file's folder (``base_dir`` for a mapping).
+    Raises :class:`GridError` naming the file and the key (see the module docstring).
+    """
+    from cpalgo.evaluate.runner import REGIMES, resolve_regime, resolve_split
+    from cpalgo.methods import GROUPS, check_settings, get_method, method_names  # noqa: F401
+    from cpsim.conditions import resolve_condition
+
+    if isinstance(source, Mapping):
+        doc, where = dict(source), "grid"
+        base = Path(base_dir or ".")
+    else:
+        path = resolve_grid_path(source)
+        where = str(source)
+        if not os.path.isfile(path):
+            raise GridError(f"{where}: no such grid file")
+        try:
+            with open(path, encoding="utf-8") as fh:
+                doc = yaml.safe_load(fh)
+        except yaml.YAMLError as exc:
+            raise GridError(f"{where}: not valid YAML: {str(exc).splitlines()[0]}") from None
+        base = Path(base_dir) if base_dir is not None else Path(path).parent
+        if not isinstance(doc, dict):
+            raise GridError(f"{where}: expected a mapping of grid keys, got {type(doc).__name__}")
+    unknown = sorted(set(doc) - set(_TOP_KEYS))
+    if unknown:
+        raise _fail(where, unknown[0], f"unknown key; accepted: {list(_TOP_KEYS)}")
+    for key in ("anchor", "budget", "methods"):
+        if key not in doc:
+            raise _fail(where, key, "missing (required)")
+
+    # methods first: an unknown method is the commonest mistake
+    names = _names(doc["methods"], where, "methods")
+    known = method_names()
+    if names == ["all"]:
+        names = known
+    for name in names:
+        if name == ANCHOR:
+            raise _fail(where, "methods", f"{ANCHOR!r} is always evaluated; do not list it")
+        if name not in known:
+            raise _fail(where, "methods", f"unknown method {name!r}; known: {known}")
+    if len(set(names)) != len(names):
+        raise _fail(where, "methods", "lists a method twice")
+    budget = _whole(doc["budget"], where, "budget", 1)
+    anchor = _existing(doc["anchor"], where, "anchor", base, "checkpoint")
+    recipe_path = _existing(doc.get("recipe", "zoo/counterplay.yml"), where, "recipe", base, "recipe")
+    from cpalgo.recipes import load_recipe
+
+    try:
+        recipe = load_recipe(recipe_path)
+    except ValueError as exc:
+        raise _fail(where, "recipe", str(exc)) from None
+    seeds_raw = doc.get("seeds", [0])
+    if isinstance(seeds_raw, (int, float)) and not isinstance(seeds_raw, bool):
+        seeds_raw = [seeds_raw]
+    if not isinstance(seeds_raw, Sequence) or isinstance(seeds_raw, str) or not seeds_raw:
+        raise _fail(where, "seeds", f"expected a non-empty list of whole numbers, got {seeds_raw!r}")
+    seeds = tuple(_whole(s, where, "seeds", 0) for s in seeds_raw)
+    if len(set(seeds)) != len(seeds):
+        raise _fail(where, "seeds", "lists a seed twice")
+
+    overrides = _mapping(doc.get("overrides"), where, "overrides")
+    from cpalgo.recipes import SCHEDULE_KEYS, parse_schedule
+
+    for key in SCHEDULE_KEYS:
+        if key in overrides:
+            try:
+                overrides[key] = parse_schedule(overrides[key], key, where)
+            except ValueError as exc:
+                raise _fail(where, f"overrides.{key}", str(exc).split(": ", 1)[-1]) from None
+    for key in ("window", "panel"):
+        if key in overrides and isinstance(overrides[key], list):
+            overrides[key] = tuple(overrides[key])
+    env = _mapping(doc.get("env"), where, "env")
+    from cpsim import SelfPlayVecEnv
+    from cpalgo.methods import algorithm_parameters
+    import inspect
+
+    env_params = set(inspect.signature(SelfPlayVecEnv.__init__).parameters) - {"self", "config_overrides", "num_worlds"}
+    from cpsim.config import SimConfig
+
+    sim_fields = {f.name for f in dataclasses.fields(SimConfig)}
+    for key in env:
+        if key not in env_params and key not in sim_fields:
+            raise _fail(where, f"env.{key}", f"not an argument of cpsim.SelfPlayVecEnv or a SimConfig field")
+    worlds = doc.get("worlds")
+    worlds = None if worlds is None else _whole(worlds, where, "worlds", 1)
+
+    method_settings_raw = _mapping(doc.get("method_settings"), where, "method_settings")
+    method_settings: dict[str, dict[str, Any]] = {}
+    for name, settings in method_settings_raw.items():
+        if name not in names:
+            raise _fail(where, f"method_settings.{name}", "is not one of the grid's methods")
+        method_settings[name] = _mapping(settings, where, f"method_settings.{name}")
+    for name in names:
+        merged = {**recipe.algo_kwargs, **overrides, **method_settings.get(name, {})}
+        params = algorithm_parameters(get_method(name).resolve())
+        bad = sorted(set(merged) - params)
+        if bad:
+            key = f"method_settings.{name}.{bad[0]}" if bad[0] in method_settings.get(name, {}) else (
+                f"overrides.{bad[0]}" if bad[0] in overrides else f"recipe ({recipe_path}): {bad[0]}")
+            raise _fail(where, key, f"not an argument of method {name!r}'s algorithm")
+        for reserved in ("seed", "post_budget", "device", "verbose", "policy", "env"):
+            if reserved in method_settings.get(name, {}) or reserved in overrides:
+                raise _fail(where, f"overrides.{reserved}", "is set by the grid itself (seeds, budget, device)")
+
+    checkpoint_every = _whole(doc.get("checkpoint_every", 2), where, "checkpoint_every", 1)
+    torch_threads = _whole(doc.get("torch_threads", 1), where, "torch_threads", 1)
+    device = str(doc.get("device", "cpu"))
+    if device != "cpu" and not device.startswith("cuda"):
+        raise _fail(where, "device", f"expected 'cpu' or 'cuda[:n]', got {device!r}")
+    resources_raw = _mapping(doc.get("resources"), where, "resources")
+    bad = sorted(set(resources_raw) - set(_RESOURCE_KEYS))
+    if bad:
+        raise _fail(where, f"resources.{bad[0]}", f"unknown key; accepted: {list(_RESOURCE_KEYS)}")
+    resources: dict[str, float] = {"num_cpus": 1.0, "num_gpus": 1.0 if device.startswith("cuda") else 0.0}
+    for key, value in resources_raw.items():
+        try:
+            resources[key] = float(value)
+        except (TypeError, ValueError):
+            raise _fail(where, f"resources.{key}", f"expected a number, got {value!r}") from None
+        if resources[key] < 0:
+            raise _fail(where, f"resources.{key}", f"must be >= 0, got {value!r}")
+
+    # evaluation
+    ev = _mapping(doc.get("evaluation"), where, "evaluation")
+    bad = sorted(set(ev) - set(_EVAL_KEYS))
+    if bad:
+        raise _fail(where, f"evaluation.{bad[0]}", f"unknown key; accepted: {list(_EVAL_KEYS)}")
+    tasks = _whole(ev.get("tasks", 50), where, "evaluation.tasks", 1)
+    splits_raw = _names(ev.get("splits", ["interactive", "random"]), where, "evaluation.splits")
+    splits: list[str] = []
+    for s in splits_raw:
+        try:
+            splits += [x for x in resolve_split(s) if x not in splits]
+        except ValueError as exc:
+            raise _fail(where, "evaluation.splits", str(exc).split(": ", 1)[-1]) from None
+    regimes_raw = ev.get("regimes", "all")
+    regimes_list = list(REGIMES) if regimes_raw in ("all", ["all"], None) else _names(regimes_raw, where, "evaluation.regimes")
+    try:
+        regimes = tuple(dict.fromkeys(resolve_regime(r) for r in regimes_list))
+    except ValueError as exc:
+        raise _fail(where, "evaluation.regimes", str(exc).split(": ", 1)[-1]) from None
+    dep_raw = ev.get("deployments", ["normal"])
+    if isinstance(dep_raw, (str, list, tuple)):
+        dep_raw = {d: "all" for d in _names(dep_raw, where, "evaluation.deployments")}
+    if not isinstance(dep_raw, Mapping) or not dep_raw:
+        raise _fail(where, "evaluation.deployments", f"expected a list of conditions or condition -> methods, got {dep_raw!r}")
+    deployments: dict[str, tuple[str, ...]] = {}
+    for cond, who in dep_raw.items():
+        try:
+            resolve_condition(str(cond), "condition")
+        except ValueError:
+            from cpsim.conditions import PROFILE_ALIASES, PROFILES
+
+            raise _fail(where, "evaluation.deployments", f"unknown deployment {cond!r}; accepted: "
+                        f"{sorted(PROFILES) + sorted(PROFILE_ALIASES)}") from None
+        members = (ANCHOR, *names) if who in ("all", None) else tuple(_names(who, where, f"evaluation.deployments.{cond}"))
+        for m in members:
+            if m != ANCHOR and m not in names:
+                raise _fail(where, f"evaluation.deployments.{cond}", f"{m!r} is not one of the grid's methods")
+        deployments[str(cond)] = tuple(dict.fromkeys(members))
+    pool = str(ev.get("pool", "procedural"))
+    if pool != "procedural":
+        pool_path = pool if os.path.isdir(pool) else str(base / pool)
+        if not os.path.isdir(pool_path):
+            raise _fail(where, "evaluation.pool", f"neither 'procedural' nor a folder: {pool!r}")
+        pool = pool_path
+    pool_size = ev.get("pool_size")
+    pool_size = None if pool_size is None else _whole(pool_size, where, "evaluation.pool_size", 1)
+    traffic = ev.get("traffic_policy")
+    traffic = None if traffic is None else _existing(traffic, where, "evaluation.traffic_policy", base, "checkpoint")
+    bc = ev.get("bc_policy")
+    bc = None if bc is None else _existing(bc, where, "evaluation.bc_policy", base, "checkpoint")
+    max_agents = ev.get("max_agents")
+    sim_config = ev.get("sim_config")
+    if sim_config is not None:
+        sim_config = _mapping(sim_config, where, "evaluation.sim_config")
+        bad = sorted(set(sim_config) - sim_fields)
+        if bad:
+            raise _fail(where, f"evaluation.sim_config.{bad[0]}", "not a SimConfig field")
+    evaluation = EvalSettings(
+        tasks=tasks, splits=tuple(splits), regimes=regimes, deployments=deployments, pool=pool,
+        pool_size=pool_size, seed=_whole(ev.get("seed", 0), where, "evaluation.seed", 0),
+        traffic_policy=traffic, bc_policy=bc,
+        max_worlds=_whole(ev.get("max_worlds", 256), where, "evaluation.max_worlds", 1),
+        max_agents=None if max_agents is None else _whole(max_agents, where, "evaluation.max_agents", 1),
+        sim_config=sim_config,
+    )
+    name = str(doc.get("name") or (Path(where).stem if where != "grid" else "grid"))
+    return GridConfig(
+        path=where, name=name, anchor=anchor, recipe=recipe_path, budget=budget, seeds=seeds,
+        methods=tuple(names), overrides=overrides, env=env, worlds=worlds, method_settings=method_settings,
+        evaluation=evaluation, checkpoint_every=checkpoint_every, torch_threads=torch_threads, device=device,
+        resources=resources, description=str(doc.get("description", "")),
+    )

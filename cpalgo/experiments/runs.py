@@ -1,0 +1,328 @@
+"""One run of a grid: post-train a method from the anchor to the grid's budget, with
+resumable checkpoints, then evaluate it under its deployment conditions.
+
+Files of a run (``OUT/runs/<method>/seed<k>/``), every one written atomically:
+
+* ``checkpoint.zip`` + ``checkpoint.json``: the latest resumable state (model with its
+  optimiser, budget totals, step counters, method counters), every ``checkpoint_every``
+  generations. A killed run restarts from them (RNG streams, CounterPlay's searches
+  queued for the next generation and PPO-Opponent's older checkpoints are not kept: the
+  continuation is a faithful run, not a bit-identical one).
+* ``progress.json``: generation, B_post and timing after every generation.
+* ``model.zip`` + ``train.json``: the trained model and its summary (budget, counters, wall
+  time); ``train.json`` marks the training as finished.
+* ``eval_<deployment>.npz``: the evaluator's per task-regime columns
+  (:class:`cpalgo.evaluate.runner.EvalResult`), one file per deployment condition.
+
+The anchor's evaluations live in ``OUT/anchor/eval_<deployment>.npz``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from cpsim.atomic import atomic_path
+from cpalgo.experiments.grid import ANCHOR, GridConfig, RunSpec
+
+__all__ = ["run_dir", "run_status", "execute_run", "train_run", "evaluate_columns", "load_columns",
+           "budget_state", "restore_budget_state", "write_bytes_atomic", "write_json_atomic"]
+
+Echo = Callable[[str], None]
+
+
+def _echo(line: str) -> None:
+    print(line, flush=True)
+
+
+# ----------------------------------------------------------------------------- files
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+
+
+def write_json_atomic(path: str | os.PathLike, doc: Any) -> None:
+    write_bytes_atomic(path, (json.dumps(doc, indent=2, default=_json_default) + "\n").encode())
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (set, tuple)):
+        return list(o)
+    return str(o)
+
+
+def run_dir(out: str | os.PathLike, spec: RunSpec) -> Path:
+    """Folder of a run (``OUT/runs/<method>/seed<k>``; the anchor's: ``OUT/anchor``)."""
+    out = Path(out)
+    return out / ANCHOR if spec.method == ANCHOR else out / "runs" / spec.method / f"seed{spec.seed}"
+
+
+def _eval_file(folder: Path, deployment: str) -> Path:
+    return folder / f"eval_{deployment}.npz"
+
+
+def run_status(grid: GridConfig, out: str | os.PathLike, spec: RunSpec) -> str:
+    """``done`` (trained and every evaluation written), ``evaluate`` (trained, evaluations
+    missing), ``resume`` (a checkpoint to continue from) or ``new``."""
+    folder = run_dir(out, spec)
+    evals_done = all(_eval_file(folder, d).is_file() for d in grid.evaluation.deployments_of(spec.method))
+    if spec.method == ANCHOR:
+        return "done" if evals_done else "evaluate"
+    if (folder / "train.json").is_file() and (folder / "model.zip").is_file():
+        return "done" if evals_done else "evaluate"
+    if (folder / "checkpoint.zip").is_file() and (folder / "checkpoint.json").is_file():
+        return "resume"
+    return "new"
+
+
+# ----------------------------------------------------------------------------- budget state
+def _totals_attributes(model: Any) -> list[str]:
+    return sorted(k for k, v in vars(model).items() if k.endswith("_totals") and isinstance(v, dict))
+
+
+def budget_state(model: Any) -> dict[str, Any]:
+    """What a checkpoint needs besides the weights: budget totals, counters, method counts."""
+    b = model.budget
+    return {
+        "budget": {k: int(getattr(b, k)) for k in ("main", "factual", "candidate", "verification", "generations")},
+        "num_timesteps": int(model.num_timesteps),
+        "n_updates": int(getattr(model, "_n_updates", 0)),
+        "totals": {name: dict(getattr(model, name)) for name in _totals_attributes(model)},
+    }
+
+
+def restore_budget_state(model: Any, state: dict[str, Any]) -> None:
+    """Inverse of :func:`budget_state` (on a model whose weights were just loaded)."""
+    for k, v in state["budget"].items():
+        setattr(model.budget, k, int(v))
+    model.num_timesteps = int(state["num_timesteps"])
+    model._n_updates = int(state.get("n_updates", 0))
+    for name, totals in state.get("totals", {}).items():
+        setattr(model, name, dict(totals))
+
+
+# ----------------------------------------------------------------------------- training
+def make_env(grid: GridConfig, recipe: Any, seed: int) -> Any:
+    """The recipe's self-play env (plus the grid's ``env`` overrides), ``VecMonitor``-wrapped."""
+    import cpsim
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from cpalgo.recipes import import_string
+
+    if recipe.normalize is not None:
+        raise ValueError(f"recipe: normalize in {recipe.path}: grid runs train on raw observations")
+    kwargs = {**recipe.env_kwargs, **dict(grid.env)}
+    kwargs.setdefault("seed", seed)
+    kwargs.setdefault("device", grid.device)
+    env = cpsim.SelfPlayVecEnv(num_worlds=grid.worlds or recipe.num_worlds, **kwargs)
+    wrappers = [(import_string(name), kw) for name, kw in recipe.vec_env_wrappers]
+    if not any(isinstance(cls, type) and issubclass(cls, VecMonitor) for cls, _ in wrappers):
+        env = VecMonitor(env)
+    for cls, kw in wrappers:
+        env = cls(env, **kw)
+    return env
+
+
+def build_run_model(grid: GridConfig, method: str, seed: int, *, budget: int | None = None) -> Any:
+    """The run's model, anchor weights loaded (see :func:`cpalgo.methods.build_method`)."""
+    from cpalgo.methods import build_method
+    from cpalgo.recipes import load_recipe
+
+    recipe = load_recipe(grid.recipe)
+    env = make_env(grid, recipe, seed)
+    return build_method(method, grid.anchor, env, policy=recipe.policy,
+                        algo_kwargs={**recipe.algo_kwargs, **dict(grid.overrides)},
+                        settings=grid.method_settings.get(method, {}), budget=budget or grid.budget,
+                        seed=seed, device=grid.device)
+
+
+def _progress_callback(grid: GridConfig, spec: RunSpec, folder: Path, echo: Echo | None, start_wall: float,
+                       wall_before: float) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from cpalgo.checkpoint import save_model_atomic
+
+    class RunProgress(BaseCallback):
+        """Per generation: a progress line and ``progress.json``; resumable checkpoints."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.saved_at = -1
+            self.last = time.perf_counter()
+
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_start(self) -> None:
+            gens = int(self.model.budget.generations)
+            if gens > 0 and gens % grid.checkpoint_every == 0 and gens != self.saved_at:
+                save_model_atomic(self.model, folder / "checkpoint.zip")
+                state = budget_state(self.model)
+                state["wall_s"] = wall_before + time.perf_counter() - start_wall
+                write_json_atomic(folder / "checkpoint.json", state)
+                self.saved_at = gens
+
+        def _on_rollout_end(self) -> None:
+            now = time.perf_counter()
+            b = self.model.budget
+            wall = wall_before + now - start_wall
+            doc = {"run": spec.key, "generation": int(b.generations), "b_post": int(b.total),
+                   "budget": grid.budget, "fraction": b.total / grid.budget, "wall_s": round(wall, 1),
+                   "generation_s": round(now - self.last, 2)}
+            write_json_atomic(folder / "progress.json", doc)
+            if echo is not None:
+                rate = b.total / max(wall, 1e-9)
+                eta = max(grid.budget - b.total, 0) / max(rate, 1e-9)
+                echo(f"[{spec.key}] generation {b.generations}: B_post {b.total:,}/{grid.budget:,} "
+                     f"({100 * b.total / grid.budget:.0f}%), {now - self.last:.1f} s, eta {eta / 60:.1f} min")
+            self.last = now
+
+    return RunProgress()
+
+
+def train_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: Echo | None = _echo) -> dict[str, Any]:
+    """Post-train one (method, seed) to the grid's budget (resuming from its checkpoint when
+    there is one); writes ``model.zip`` and ``train.json`` and returns the summary."""
+    import torch
+
+    from cpalgo.checkpoint import save_model_atomic
+
+    folder = run_dir(out, spec)
+    folder.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(grid.torch_threads)
+    model = build_run_model(grid, spec.method, int(spec.seed))
+    wall_before = 0.0
+    resumed_from = None
+    if (folder / "checkpoint.zip").is_file() and (folder / "checkpoint.json").is_file():
+        state = json.loads((folder / "checkpoint.json").read_text())
+        model.set_parameters(str(folder / "checkpoint.zip"), exact_match=True, device=grid.device)
+        restore_budget_state(model, state)
+        wall_before = float(state.get("wall_s", 0.0))
+        resumed_from = int(model.budget.total)
+        if echo is not None:
+            echo(f"[{spec.key}] resuming at B_post {model.budget.total:,} (generation {model.budget.generations})")
+    start = time.perf_counter()
+    remaining = grid.budget - int(model.budget.total)
+    if remaining > 0:
+        callback = _progress_callback(grid, spec, folder, echo, start, wall_before)
+        model.learn(remaining, callback=callback, reset_num_timesteps=resumed_from is None, progress_bar=False)
+    wall = wall_before + time.perf_counter() - start
+    save_model_atomic(model, folder / "model.zip")
+    summary = {
+        "method": spec.method, "seed": spec.seed, "budget": grid.budget,
+        "b_post": int(model.budget.total), "budget_totals": model.budget.as_dict(),
+        "generations": int(model.budget.generations), "wall_s": round(wall, 1),
+        "resumed_from": resumed_from,
+        "totals": {name: dict(getattr(model, name)) for name in _totals_attributes(model)},
+        "torch_threads": grid.torch_threads, "device": grid.device,
+    }
+    write_json_atomic(folder / "train.json", summary)
+    if echo is not None:
+        echo(f"[{spec.key}] trained: B_post {model.budget.total:,} in {model.budget.generations} generations, "
+             f"{wall / 60:.1f} min")
+    model.env.close()
+    return summary
+
+
+# ----------------------------------------------------------------------------- evaluation
+_EVALUATORS: dict[tuple, Any] = {}
+
+
+def _evaluator(grid: GridConfig, deployment: str) -> Any:
+    """One evaluator per (evaluation settings, deployment) per process (the tasks and the
+    co-player models are built once and reused by every run this process evaluates)."""
+    from cpalgo.evaluate.runner import EvalConfig, Evaluator, make_tasks
+
+    e = grid.evaluation
+    key = (json.dumps(grid.run_fingerprint()["evaluation"], sort_keys=True), grid.anchor, deployment,
+           grid.torch_threads, grid.device)
+    if key not in _EVALUATORS:
+        tasks = make_tasks(e.pool, e.split_arg, e.tasks, seed=e.seed, pool_size=e.pool_size)
+        config = EvalConfig(deploy_condition=deployment, max_worlds=e.max_worlds, max_agents=e.max_agents,
+                            seed=e.seed, device=grid.device, progress=False, torch_threads=grid.torch_threads)
+        ev = Evaluator(tasks, e.regimes, traffic_policy=e.traffic_policy or grid.anchor, bc_policy=e.bc_policy,
+                       config=config, sim_config=dict(e.sim_config) if e.sim_config else None)
+        while len(_EVALUATORS) >= 3:
+            _EVALUATORS.pop(next(iter(_EVALUATORS)))
+        _EVALUATORS[key] = ev
+    return _EVALUATORS[key]
+
+
+def evaluate_columns(grid: GridConfig, policy: Any, deployment: str, label: str) -> dict[str, np.ndarray]:
+    """Per task-regime columns of ``policy`` (model or checkpoint path) under ``deployment``."""
+    result = _evaluator(grid, deployment).run(policy, label)
+    return {k: np.asarray(v) for k, v in result.columns.items()}
+
+
+def _npz_bytes(columns: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **columns)
+    return buf.getvalue()
+
+
+def load_columns(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
+
+
+# ----------------------------------------------------------------------------- one task
+def execute_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: Echo | None = _echo) -> dict[str, Any]:
+    """Everything one grid task does: train (or resume) unless trained, then every missing
+    evaluation. Returns ``{"run", "status", "files": {relative path: bytes}, "error"}``:
+    the small result files, so that a driver on another machine can write them too."""
+    import torch
+
+    folder = run_dir(out, spec)
+    folder.mkdir(parents=True, exist_ok=True)
+    payload: dict[str, Any] = {"run": spec.key, "status": "done", "files": {}, "error": None}
+    t0 = time.perf_counter()
+    try:
+        torch.set_num_threads(grid.torch_threads)
+        status = run_status(grid, out, spec)
+        if status == "done":
+            payload["status"] = "skipped"
+            return payload
+        model: Any = None
+        if spec.method != ANCHOR and status in ("new", "resume"):
+            train_run(grid, spec, out, echo)
+        if spec.method != ANCHOR:
+            model = str(folder / "model.zip")
+            payload["files"][str(Path("runs") / spec.method / f"seed{spec.seed}" / "train.json")] = \
+                (folder / "train.json").read_bytes()
+        else:
+            model = grid.anchor
+        for deployment in grid.evaluation.deployments_of(spec.method):
+            target = _eval_file(folder, deployment)
+            if not target.is_file():
+                te = time.perf_counter()
+                columns = evaluate_columns(grid, model, deployment, spec.method)
+                write_bytes_atomic(target, _npz_bytes(columns))
+                if echo is not None:
+                    echo(f"[{spec.key}] evaluated under {deployment}: mean score "
+                         f"{float(np.mean(columns['score'])):.1f} over {columns['score'].size} task-regimes "
+                         f"({time.perf_counter() - te:.0f} s)")
+            rel = target.relative_to(Path(out))
+            payload["files"][str(rel)] = target.read_bytes()
+    except Exception as exc:  # noqa: BLE001 - one failed run must not stop the grid
+        payload["status"] = "failed"
+        payload["error"] = f"{type(exc).__name__}: {exc}"
+        write_bytes_atomic(folder / "error.txt", traceback.format_exc().encode())
+        if echo is not None:
+            echo(f"[{spec.key}] FAILED: {payload['error']} (traceback in {folder / 'error.txt'})")
+    payload["seconds"] = round(time.perf_counter() - t0, 1)
+    sys.stdout.flush()
+    return payload

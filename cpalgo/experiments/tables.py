@@ -1,0 +1,525 @@
+"""The grid's results: ``results.csv``, ``tables.md`` in the seed paper's layouts, plots.
+
+Inputs are the files the runs wrote (:mod:`cpalgo.experiments.runs`): ``eval_<deployment>.npz``
+(per task-regime columns) and ``train.json`` of every run, and the anchor's evaluations.
+A table is written only where the grid has its runs:
+
+* **Table I**, per split: score per traffic regime and their mean, anchor and the
+  ``baseline`` / ``counterplay`` methods, mean ± std over seeds (normal deployment), plus
+  CounterPlay minus PPO-Continue.
+* **Table II**, per split: the ``ablation`` methods with their components (B, C, S, D).
+* **Table III**, per split: the anchor's outcome classes (share of task-regimes) and, for
+  each main method, the share of each class it *repairs*: the ego reaches its goal without
+  any collision or off-road (the seed paper's definition; co-player harm is reported in
+  results.csv, not part of it).
+* **Table IV**, per split: score and at-fault collision rate under every deployment
+  condition the grid evaluates.
+* **Table V**, per split: the single-style panels (``panel`` methods) against CounterPlay:
+  score, at-fault collision, off-road and goal rates.
+* **Search statistics**: per CounterPlay-family method, failures, searches, admissible
+  retries, verified share, teachers per generation and the branch share of B_post (plus
+  the counters of the other methods: rewinds, opponent transitions, distillation teachers).
+* **Targets** of issue 13, each with its measured value and whether it holds.
+
+Rates are percentages in the tables and in ``results.csv`` (columns ``*_pct``); scores
+are 0-100; ``co_player_harm`` is other vehicles collided or off-road per task.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from cpalgo.evaluate import metrics as M
+from cpalgo.experiments.grid import ANCHOR, GridConfig
+from cpalgo.experiments.runs import load_columns, run_dir, write_bytes_atomic
+from cpalgo.experiments.grid import RunSpec
+
+__all__ = ["GridResults", "collect_results", "results_csv", "markdown_report", "write_tables", "repaired",
+           "RESULT_METRICS"]
+
+#: results.csv metrics: (column, summarize key, scale)
+RESULT_METRICS: tuple[tuple[str, str, float], ...] = (
+    ("score", "score", 1.0),
+    ("completion_pct", "completion", 100.0),
+    ("at_fault_collision_pct", "at_fault_collision", 100.0),
+    ("non_at_fault_collision_pct", "non_at_fault_collision", 100.0),
+    ("offroad_pct", "offroad", 100.0),
+    ("timeout_pct", "timeout", 100.0),
+    ("co_player_harm", "co_player_harm", 1.0),
+)
+#: Table III's classes, in the paper's column order.
+REPAIR_CLASSES: tuple[tuple[str, str], ...] = (
+    ("completed", "Completed"), ("timeout", "Timeout"), ("at_fault_collision", "AF coll."),
+    ("non_at_fault_collision", "Non-AF coll."), ("offroad", "Offroad"),
+)
+_SUMMARY_SOURCES = ("score", "goal", "at_fault_collision", "offroad", "non_at_fault_collision", "timeout",
+                    "co_player_harm", "comfort", "lane_align", "lane_center")
+
+
+def repaired(columns: dict[str, np.ndarray]) -> np.ndarray:
+    """(n,) bool: the ego reached its goal without any collision or off-road."""
+    return (np.asarray(columns["goal"], bool) & ~np.asarray(columns["at_fault_collision"], bool)
+            & ~np.asarray(columns["non_at_fault_collision"], bool) & ~np.asarray(columns["offroad"], bool))
+
+
+@dataclass
+class GridResults:
+    """Everything the tables read.
+
+    Attributes:
+        grid: the grid.
+        evals: (method, seed, deployment) -> columns; the anchor's seed is None.
+        train: (method, seed) -> ``train.json``.
+        summary: (method, seed, deployment, split, regime) -> :func:`metrics.summarize`;
+            regime ``"mean"`` is the mean over the regimes.
+    """
+
+    grid: GridConfig
+    evals: dict[tuple[str, int | None, str], dict[str, np.ndarray]] = field(default_factory=dict)
+    train: dict[tuple[str, int], dict[str, Any]] = field(default_factory=dict)
+    summary: dict[tuple[str, int | None, str, str, str], dict[str, float]] = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def splits(self) -> tuple[str, ...]:
+        return self.grid.evaluation.splits
+
+    @property
+    def regimes(self) -> tuple[str, ...]:
+        return self.grid.evaluation.regimes
+
+    @property
+    def main_deployment(self) -> str:
+        deps = list(self.grid.evaluation.deployments)
+        return "normal" if "normal" in deps else deps[0]
+
+    def seeds_of(self, method: str, deployment: str) -> list[int | None]:
+        if method == ANCHOR:
+            return [None] if (ANCHOR, None, deployment) in self.evals else []
+        return [s for s in self.grid.seeds if (method, s, deployment) in self.evals]
+
+    def has(self, method: str, deployment: str | None = None) -> bool:
+        return bool(self.seeds_of(method, deployment or self.main_deployment))
+
+    def values(self, method: str, deployment: str, split: str, regime: str, key: str) -> list[float]:
+        """The metric of each seed (one value for the anchor)."""
+        out = []
+        for seed in self.seeds_of(method, deployment):
+            s = self.summary.get((method, seed, deployment, split, regime))
+            if s is not None and key in s:
+                out.append(float(s[key]))
+        return out
+
+    def label(self, method: str) -> str:
+        if method == ANCHOR:
+            return "Anchor"
+        from cpalgo.methods import get_method
+
+        return get_method(method).row_label
+
+    def methods_in(self, *groups: str) -> list[str]:
+        from cpalgo.methods import get_method
+
+        return [m for m in self.grid.methods if get_method(m).group in groups]
+
+
+def collect_results(out: str | os.PathLike, grid: GridConfig) -> GridResults:
+    """Read every evaluation and training summary the grid's runs wrote so far."""
+    res = GridResults(grid=grid)
+    for spec in grid.runs():
+        folder = run_dir(out, spec)
+        for deployment in grid.evaluation.deployments_of(spec.method):
+            path = folder / f"eval_{deployment}.npz"
+            if path.is_file():
+                res.evals[(spec.method, spec.seed, deployment)] = load_columns(path)
+        if spec.method != ANCHOR and (folder / "train.json").is_file():
+            res.train[(spec.method, int(spec.seed))] = json.loads((folder / "train.json").read_text())
+    for (method, seed, deployment), cols in res.evals.items():
+        for split in grid.evaluation.splits:
+            per_regime = []
+            for regime in grid.evaluation.regimes:
+                m = (cols["split"] == split) & (cols["regime"] == regime)
+                if not m.any():
+                    continue
+                s = M.summarize({k: np.asarray(cols[k])[m] for k in _SUMMARY_SOURCES if k in cols})
+                res.summary[(method, seed, deployment, split, regime)] = s
+                per_regime.append(s)
+            if per_regime:
+                keys = [k for k in per_regime[0] if k != "n"]
+                mean = {k: float(np.mean([p[k] for p in per_regime])) for k in keys}
+                mean["n"] = sum(int(p["n"]) for p in per_regime)
+                res.summary[(method, seed, deployment, split, "mean")] = mean
+    return res
+
+
+# ----------------------------------------------------------------------------- formatting
+def _mean_std(values: Sequence[float]) -> tuple[float, float]:
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], np.float64)
+    if v.size == 0:
+        return float("nan"), float("nan")
+    return float(v.mean()), float(v.std(ddof=1)) if v.size > 1 else 0.0
+
+
+def _cell(values: Sequence[float], scale: float = 1.0, decimals: int = 1) -> str:
+    if not values:
+        return "-"
+    m, s = _mean_std([scale * x for x in values])
+    if not math.isfinite(m):
+        return "-"
+    return f"{m:.{decimals}f}" + (f" ± {s:.{decimals}f}" if len(values) > 1 else "")
+
+
+def _table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return lines + [""]
+
+
+def results_csv(res: GridResults) -> str:
+    """One row per (method, seed, split, regime, deployment) (see the module docstring)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["method", "seed", "split", "regime", "deployment", "n_tasks", *(c for c, _, _ in RESULT_METRICS)])
+    order = [ANCHOR, *res.grid.methods]
+    for (method, seed, deployment, split, regime), s in sorted(
+            res.summary.items(), key=lambda kv: (order.index(kv[0][0]), -1 if kv[0][1] is None else kv[0][1],
+                                                 list(res.grid.evaluation.deployments).index(kv[0][2]),
+                                                 res.splits.index(kv[0][3]),
+                                                 (list(res.regimes) + ["mean"]).index(kv[0][4]))):
+        if regime == "mean":
+            continue
+        w.writerow([method, "" if seed is None else seed, split, regime, deployment, int(s["n"]),
+                    *(f"{scale * s.get(key, float('nan')):.4f}" for _, key, scale in RESULT_METRICS)])
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------- tables
+def _table_i(res: GridResults, lines: list[str]) -> None:
+    dep = res.main_deployment
+    methods = [m for m in [ANCHOR, *res.methods_in("baseline", "counterplay")] if res.has(m, dep)]
+    if len(methods) < 2:
+        return
+    lines += [f"## Table I: score per traffic regime ({dep} deployment)", ""]
+    for split in res.splits:
+        header = ["Method", *res.regimes, "Mean"]
+        rows = [[res.label(m), *(_cell(res.values(m, dep, split, g, "score")) for g in (*res.regimes, "mean"))]
+                for m in methods]
+        if res.has("counterplay", dep) and res.has("ppo-continue", dep):
+            diff = []
+            for g in (*res.regimes, "mean"):
+                a = _mean_std(res.values("counterplay", dep, split, g, "score"))[0]
+                b = _mean_std(res.values("ppo-continue", dep, split, g, "score"))[0]
+                diff.append(f"{a - b:+.1f}" if math.isfinite(a - b) else "-")
+            rows.append(["CounterPlay − PPO-Continue", *diff])
+        lines += [f"### {split.capitalize()} split ({_n_tasks(res, split)} tasks)", ""] + _table(header, rows)
+
+
+def _n_tasks(res: GridResults, split: str) -> int:
+    for (method, seed, dep), cols in res.evals.items():
+        m = cols["split"] == split
+        if m.any():
+            return int(np.unique(np.asarray(cols["task"])[m]).size)
+    return 0
+
+
+def _table_ii(res: GridResults, lines: list[str]) -> None:
+    dep = res.main_deployment
+    ablations = [m for m in res.methods_in("ablation") if res.has(m, dep)]
+    if not ablations:
+        return
+    from cpalgo.methods import get_method
+
+    rows_methods = [m for m in [ANCHOR, "ppo-continue", *ablations, "counterplay"]
+                    if (m == ANCHOR or m in res.grid.methods) and res.has(m, dep)]
+    lines += [f"## Table II: component ablations ({dep} deployment, mean score over regimes)", "",
+              "B: backtracking (value-guided, or decisions before the failure); C: search across styles; "
+              "S: task-based selection and verification; D: teacher distillation.", ""]
+    for split in res.splits:
+        rows = []
+        for m in rows_methods:
+            comp = {} if m == ANCHOR else dict(get_method(m).components)
+            rows.append([res.label(m), *(comp.get(k, "") for k in "BCSD"),
+                         _cell(res.values(m, dep, split, "mean", "score"), decimals=2)])
+        lines += [f"### {split.capitalize()} split", ""] + _table(["Variant", "B", "C", "S", "D", "Score"], rows)
+
+
+def _repair_values(res: GridResults, method: str, dep: str, split: str) -> dict[str, list[float]] | None:
+    ref = res.evals.get((ANCHOR, None, dep))
+    if ref is None:
+        return None
+    out: dict[str, list[float]] = {name: [] for name, _ in REPAIR_CLASSES}
+    for seed in res.seeds_of(method, dep):
+        cols = res.evals[(method, seed, dep)]
+        for k in ("split", "regime", "scenario_id", "ego"):
+            if not np.array_equal(np.asarray(ref[k]), np.asarray(cols[k])):
+                return None  # not the same task-regimes: no repair analysis
+        m = np.asarray(ref["split"]) == split
+        ref_class = np.asarray(ref["outcome_class"])[m]
+        ok = repaired(cols)[m]
+        for name, _ in REPAIR_CLASSES:
+            in_class = ref_class == int(M.OutcomeClass[name.upper()])
+            if in_class.any():
+                out[name].append(float(ok[in_class].mean()))
+    return out
+
+
+def _table_iii(res: GridResults, lines: list[str]) -> None:
+    dep = res.main_deployment
+    ref = res.evals.get((ANCHOR, None, dep))
+    methods = [m for m in res.methods_in("baseline", "counterplay") if res.has(m, dep)]
+    if ref is None or not methods:
+        return
+    lines += [f"## Table III: task retention and failure repair ({dep} deployment, %)", "",
+              "Anchor rows: the anchor's outcome classes over all task-regimes (priority at-fault collision > "
+              "off-road > completed > non-at-fault collision > timeout). Method rows: the share of each anchor "
+              "class the method completes without any collision or off-road (mean ± std over seeds).", ""]
+    for split in res.splits:
+        m = np.asarray(ref["split"]) == split
+        classes = np.asarray(ref["outcome_class"])[m]
+        header = ["Policy", *(title for _, title in REPAIR_CLASSES)]
+        counts = {n: int(np.sum(classes == int(M.OutcomeClass[n.upper()]))) for n, _ in REPAIR_CLASSES}
+        rows = [["Anchor (share)", *(f"{100 * counts[n] / max(classes.size, 1):.1f} ({counts[n]})"
+                                     for n, _ in REPAIR_CLASSES)]]
+        for method in methods:
+            vals = _repair_values(res, method, dep, split)
+            if vals is None:
+                continue
+            rows.append([res.label(method), *(_cell(vals[n], 100.0) for n, _ in REPAIR_CLASSES)])
+        lines += [f"### {split.capitalize()} split ({int(m.sum())} task-regimes)", ""] + _table(header, rows)
+
+
+def _table_iv(res: GridResults, lines: list[str]) -> None:
+    deps = [d for d in res.grid.evaluation.deployments if any(
+        res.has(m, d) for m in res.grid.methods)]
+    if len(deps) < 2:
+        return
+    candidates = [ANCHOR, "ppo-continue", *res.methods_in("distillation"), "counterplay"]
+    methods = [m for m in candidates if (m == ANCHOR or m in res.grid.methods) and sum(res.has(m, d) for d in deps) >= 2]
+    if not methods:
+        return
+    lines += ["## Table IV: deployment conditions (score, at-fault collision %)", "",
+              "Every condition uses the same goal criterion; the condition changes the ego's style fields only.", ""]
+    for split in res.splits:
+        header = ["Method"] + [f"{d} {what}" for d in deps for what in ("score", "AF-C %")]
+        rows = []
+        for m in methods:
+            row = [res.label(m)]
+            for d in deps:
+                row += [_cell(res.values(m, d, split, "mean", "score"), decimals=2),
+                        _cell(res.values(m, d, split, "mean", "at_fault_collision"), 100.0, 2)]
+            rows.append(row)
+        lines += [f"### {split.capitalize()} split", ""] + _table(header, rows)
+
+
+def _table_v(res: GridResults, lines: list[str]) -> None:
+    dep = res.main_deployment
+    panels = [m for m in res.methods_in("panel") if res.has(m, dep)]
+    if not panels:
+        return
+    methods = (["counterplay"] if res.has("counterplay", dep) else []) + panels
+    lines += [f"## Table V: search with one or five driving styles ({dep} deployment)", "",
+              "Each search runs five candidate retries; single-style panels draw the focal agent's actions "
+              "independently per branch (co-players shared). Rates in % over all regimes.", ""]
+    for split in res.splits:
+        rows = []
+        for m in methods:
+            label = "All five styles (CounterPlay)" if m == "counterplay" else res.label(m)
+            rows.append([label, _cell(res.values(m, dep, split, "mean", "score"), decimals=2),
+                         _cell(res.values(m, dep, split, "mean", "at_fault_collision"), 100.0, 2),
+                         _cell(res.values(m, dep, split, "mean", "offroad"), 100.0, 2),
+                         _cell(res.values(m, dep, split, "mean", "completion"), 100.0, 1)])
+        lines += [f"### {split.capitalize()} split", ""] + _table(["Search styles", "Score", "AF-C %", "Off. %", "Goal %"], rows)
+
+
+def _per_seed(res: GridResults, method: str, fn: Any) -> list[float]:
+    out = []
+    for seed in res.grid.seeds:
+        t = res.train.get((method, seed))
+        if t is None:
+            continue
+        try:
+            v = fn(t)
+        except (KeyError, ZeroDivisionError, TypeError):
+            continue
+        if v is not None and math.isfinite(v):
+            out.append(float(v))
+    return out
+
+
+def _search_table(res: GridResults, lines: list[str]) -> None:
+    family = [m for m in res.grid.methods if any((m, s) in res.train for s in res.grid.seeds)]
+    if not family:
+        return
+    cp = [m for m in family if m in res.methods_in("counterplay", "ablation", "panel")]
+    lines += ["## Search statistics and budget", ""]
+    if cp:
+        def st(t: dict, key: str) -> float:
+            return float(t["totals"]["search_totals"].get(key, 0))
+
+        rows = []
+        for m in cp:
+            rows.append([
+                res.label(m),
+                _cell(_per_seed(res, m, lambda t: st(t, "failures") / t["generations"]), decimals=1),
+                _cell(_per_seed(res, m, lambda t: st(t, "searches") / t["generations"]), decimals=1),
+                _cell(_per_seed(res, m, lambda t: st(t, "teachers_chosen") / st(t, "searches")), 100.0),
+                _cell(_per_seed(res, m, lambda t: st(t, "admissible") / st(t, "searches")), decimals=2),
+                _cell(_per_seed(res, m, lambda t: st(t, "verified") / st(t, "teachers_chosen")), 100.0),
+                _cell(_per_seed(res, m, lambda t: st(t, "teachers") / t["generations"]), decimals=2),
+                _cell(_per_seed(res, m, lambda t: t["budget_totals"]["branch_share"]), 100.0),
+            ])
+        lines += ["Per generation; admissible share: searches whose chosen retry passed the filters (with "
+                  "selection by reward, searches with a chosen retry); verified share: chosen retries that "
+                  "passed the rerun; branch share: branch transitions / B_post.", ""]
+        lines += _table(["Method", "failures/gen", "searches/gen", "admissible share %",
+                         "admissible retries/search", "verified share %", "teachers/gen", "branch share %"], rows)
+    other = []
+    for m in family:
+        if m in cp:
+            continue
+        t = next((res.train[(m, s)] for s in res.grid.seeds if (m, s) in res.train), None)
+        if t is None:
+            continue
+        counters = {name: vals for name, vals in t.get("totals", {}).items() if name != "search_totals" and vals}
+        desc = "; ".join(f"{k} {_cell(_per_seed(res, m, lambda t, n=name, k=k: t['totals'][n][k] / t['generations']), decimals=1)}/gen"
+                         for name, vals in counters.items() for k in sorted(vals))
+        other.append([res.label(m), _cell(_per_seed(res, m, lambda t: t["b_post"]), decimals=0),
+                      _cell(_per_seed(res, m, lambda t: t["generations"]), decimals=1), desc or "-"])
+    if other:
+        lines += _table(["Method", "B_post", "generations", "counters"], other)
+    walls = [(res.label(m), _cell(_per_seed(res, m, lambda t: t["wall_s"] / 60), decimals=1),
+              _cell(_per_seed(res, m, lambda t: t["b_post"]), decimals=0)) for m in family]
+    if walls:
+        lines += ["Training wall time (min) and B_post reached per run:", ""]
+        lines += _table(["Method", "wall min", "B_post"], walls)
+
+
+def _targets(res: GridResults, lines: list[str]) -> None:
+    dep = res.main_deployment
+    checks = []
+    if res.has("counterplay", dep) and res.has("ppo-continue", dep):
+        for split in res.splits:
+            cp = res.values("counterplay", dep, split, "mean", "score")
+            pc = res.values("ppo-continue", dep, split, "mean", "score")
+            d = _mean_std(cp)[0] - _mean_std(pc)[0]
+            checks.append((f"CounterPlay − PPO-Continue, {split}: >= +5 points",
+                           f"{d:+.2f} (CounterPlay {_cell(cp, decimals=2)}, PPO-Continue {_cell(pc, decimals=2)})",
+                           d >= 5.0))
+        for split in res.splits:
+            cpv = _repair_values(res, "counterplay", dep, split)
+            pcv = _repair_values(res, "ppo-continue", dep, split)
+            if cpv and pcv and cpv["timeout"] and pcv["timeout"]:
+                a, b = _mean_std(cpv["timeout"])[0] * 100, _mean_std(pcv["timeout"])[0] * 100
+                checks.append((f"timeouts repaired, {split}: CounterPlay >= 30%, PPO-Continue <= 10%",
+                               f"{a:.1f}% vs {b:.1f}%", a >= 30.0 and b <= 10.0))
+    variants = [m for m in ["counterplay", *res.methods_in("ablation")] if res.has(m, dep)]
+    if "counterplay" in variants and "cp-no-style" in variants and len(variants) >= 3:
+        split = res.splits[0]
+        scores = {m: _mean_std(res.values(m, dep, split, "mean", "score"))[0] for m in variants}
+        best, worst = max(scores, key=scores.get), min(scores, key=scores.get)
+        checks.append((f"Table II shape, {split}: full method highest, cp-no-style lowest of the variants",
+                       f"highest {best} ({scores[best]:.2f}), lowest {worst} ({scores[worst]:.2f})",
+                       best == "counterplay" and worst == "cp-no-style"))
+    if not checks:
+        return
+    lines += ["## Targets (issue 13)", ""]
+    lines += _table(["Target", "Measured", "Met"], [[t, v, "yes" if ok else "**no**"] for t, v, ok in checks])
+
+
+def markdown_report(res: GridResults, extra: str = "") -> str:
+    """``tables.md``: the tables the grid has runs for (see the module docstring)."""
+    g = res.grid
+    e = g.evaluation
+    n_done = len({(m, s) for (m, s, _d) in res.evals if m != ANCHOR})
+    lines = [f"# Grid {g.name}", "",
+             f"- anchor `{g.anchor}`, recipe `{g.recipe}`, B_post {g.budget:,} live agent transitions per run, "
+             f"seeds {list(g.seeds)}",
+             f"- evaluation: {e.tasks} tasks per split ({', '.join(e.splits)}), regimes {', '.join(e.regimes)}, "
+             f"pool {e.pool} (seed {e.seed}); deployments " + "; ".join(
+                 f"{d}: {len(ms)} policies" for d, ms in e.deployments.items()),
+             f"- {n_done} of {len(g.methods) * len(g.seeds)} runs evaluated", ""]
+    if g.description:
+        lines += [g.description.strip(), ""]
+    if extra:
+        lines += [extra.strip(), ""]
+    for part in (_table_i, _table_ii, _table_iii, _table_iv, _table_v, _search_table, _targets):
+        part(res, lines)
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- plots
+def _plots(res: GridResults, out: Path) -> list[str]:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        from matplotlib.figure import Figure
+    except ImportError:
+        return []
+    from cpsim.atomic import atomic_path
+
+    written = []
+    dep = res.main_deployment
+    methods = [m for m in [ANCHOR, *res.methods_in("baseline", "counterplay")] if res.has(m, dep)]
+    if methods:
+        fig = Figure(figsize=(max(8, 1.3 * (len(res.regimes) + 1)), 3.6 * len(res.splits)))
+        axes = fig.subplots(len(res.splits), 1, squeeze=False)[:, 0]
+        cols = [*res.regimes, "mean"]
+        width = 0.8 / len(methods)
+        for ax, split in zip(axes, res.splits):
+            for i, m in enumerate(methods):
+                stats = [_mean_std(res.values(m, dep, split, g, "score")) for g in cols]
+                x = np.arange(len(cols)) + (i - (len(methods) - 1) / 2) * width
+                ax.bar(x, [s[0] for s in stats], width, yerr=[s[1] for s in stats], label=res.label(m), capsize=2)
+            ax.set_xticks(np.arange(len(cols)), cols)
+            ax.set_ylabel("score (0-100)")
+            ax.set_title(f"{split} split, {dep} deployment")
+        axes[0].legend(fontsize=8, ncol=min(len(methods), 4))
+        fig.tight_layout()
+        with atomic_path(out / "scores.png", suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=110)
+        written.append("scores.png")
+    rep_methods = [m for m in res.methods_in("baseline", "counterplay") if res.has(m, dep)]
+    if (ANCHOR, None, dep) in res.evals and rep_methods:
+        fig = Figure(figsize=(9, 3.4 * len(res.splits)))
+        axes = fig.subplots(len(res.splits), 1, squeeze=False)[:, 0]
+        width = 0.8 / len(rep_methods)
+        for ax, split in zip(axes, res.splits):
+            for i, m in enumerate(rep_methods):
+                vals = _repair_values(res, m, dep, split) or {}
+                stats = [_mean_std([100 * v for v in vals.get(n, [])]) for n, _ in REPAIR_CLASSES]
+                x = np.arange(len(REPAIR_CLASSES)) + (i - (len(rep_methods) - 1) / 2) * width
+                ax.bar(x, [s[0] for s in stats], width, yerr=[s[1] for s in stats], label=res.label(m), capsize=2)
+            ax.set_xticks(np.arange(len(REPAIR_CLASSES)), [f"anchor: {t}" for _, t in REPAIR_CLASSES], fontsize=8)
+            ax.set_ylabel("repaired (%)")
+            ax.set_title(f"{split} split: share of each anchor outcome class completed cleanly")
+        axes[0].legend(fontsize=8)
+        fig.tight_layout()
+        with atomic_path(out / "repair.png", suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=110)
+        written.append("repair.png")
+    return written
+
+
+def write_tables(out: str | os.PathLike, grid: GridConfig, extra: str = "") -> list[str]:
+    """Write ``results.csv``, ``tables.md`` and the plots into ``out``; returns the file names."""
+    out = Path(out)
+    res = collect_results(out, grid)
+    written = []
+    write_bytes_atomic(out / "results.csv", results_csv(res).encode())
+    written.append("results.csv")
+    figures = _plots(res, out)
+    md = markdown_report(res, extra)
+    md += "".join(f"\n![{name}]({name})\n" for name in figures)
+    write_bytes_atomic(out / "tables.md", md.encode())
+    written.append("tables.md")
+    return written + figures
