@@ -1,38 +1,39 @@
 """CounterPlay: counterfactual post-training of a self-play policy on top of RecurrentPPO.
 
-One generation = one rollout + one train step (DESIGN.md, "CounterPlay"):
+One generation = one rollout + one update (DESIGN.md, "CounterPlay"; the search itself
+lives in :mod:`cpalgo.counterplay.driver`):
 
-1. **Roots.** During the rollout, every ``root_interval`` decisions of a world, the world is
+1. **Roots.** During rollout g, every ``root_interval`` decisions of a world, the world is
    snapshotted and every agent's actor/critic LSTM memory and condition are kept; every
    agent's critic value, sampling uniform and action are traced at every decision.
 2. **Failures.** A POLICY agent whose episode ends in collision, off-road or timeout
-   requests one search; its root is chosen right away (``search.select_root``).
-3. **Branches.** At the end of the rollout, the searches that fit the budget run, all
-   together, in a second simulator on the same pool: per search one factual branch (w0)
-   and one branch per panel profile (focal style fields replaced), every other agent
-   keeping its memory and condition; shared inverse-CDF draws.
-4. **Ranking, admission, verification** (``search``), then the verified retries become
-   teachers for this generation's ``train``.
+   requests one search; its root is chosen right away from g's own roots.
+3. **Branches.** g's searches run in waves during rollout g+1, under g's frozen policy, in
+   a second simulator on the same pool: per search one factual branch (w0) and one branch
+   per panel profile (focal style fields replaced), every other agent keeping its memory
+   and condition; shared inverse-CDF draws.
+4. **Ranking, admission, verification** (``search``); the verified retries become
+   teachers of g+1's update.
 5. **Distillation**: ``distill_coef`` x KL(teacher || student under w_dep) added to
    ``distill_minibatches`` PPO minibatch updates; branch data never enters PPO / value
    losses.
-6. **Budget** (``model.budget``): main + factual + candidate + verification transitions;
-   branch transitions per generation <= ``branch_cap`` x main transitions.
-7. **Masking**: inactive ``SelfPlayVecEnv`` slots contribute to no loss and no advantage
-   normalisation.
+6. **Budget** (``model.budget``): B_post = main + factual + candidate + verification live
+   agent transitions. ``num_timesteps`` counts B_post, so ``learn(B)`` stops at the first
+   generation boundary where B_post >= B, for CounterPlay and for every method built on it.
+   Branch transitions of g's searches <= ``branch_cap`` x g's main transitions.
+7. **Live slots only**: inactive ``SelfPlayVecEnv`` slots are skipped by rollout inference
+   and by every minibatch (:mod:`cpalgo.common.buffers`), and count in no budget.
 
 The rollout / train loops are copies of sb3-contrib 2.9.2's ``RecurrentPPO`` with hook
-points (their local variable names are kept for callbacks). With ``counterfactual=False``
-and ``mask_inactive=False`` the computation is exactly the parent's: parameters after
-``learn`` are bit-identical to ``RecurrentPPO`` for the same seed (tested).
+points (their local variable names are kept for callbacks). With ``counterfactual=False``,
+``mask_inactive=False`` and sb3-contrib's policy class the computation is exactly the
+parent's: parameters after ``learn`` are bit-identical to ``RecurrentPPO`` (tested).
 """
 
 from __future__ import annotations
 
-import time
-from collections import Counter
 from copy import deepcopy
-from typing import Any, ClassVar, Sequence, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Sequence
 
 import numpy as np
 import torch as th
@@ -42,60 +43,47 @@ from sb3_contrib.common.recurrent.buffers import RecurrentDictRolloutBuffer, Rec
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.buffers import RolloutBuffer
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
 from cpalgo.common.buffers import MaskedRecurrentDictRolloutBuffer, MaskedRecurrentRolloutBuffer
-from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits
-from cpalgo.policies import POLICY_ALIASES
-from cpalgo.counterplay.branches import BranchJob, BranchResult, BranchRunner
+from cpalgo.common.progress import LearnProgressBar
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, collate_teachers, distill_loss
-from cpalgo.counterplay.records import check_keep_searches, keep_wave
-from cpalgo.counterplay.roots import RootStore, SearchRequest
-from cpalgo.counterplay.search import (
-    BACKTRACK_MODES,
-    SELECTION_MODES,
-    admit,
-    choose_teacher,
-    select_root,
-    verify,
+from cpalgo.counterplay.driver import (
+    FAILURE_OUTCOMES,
+    SearchDriver,
+    SearchSettings,
+    SearchStats,
+    put_states,
+    take_states,
 )
+from cpalgo.counterplay.records import check_keep_searches, keep_wave
+from cpalgo.counterplay.search import BACKTRACK_MODES, SELECTION_MODES
+from cpalgo.policies import POLICY_ALIASES
 from cpsim.conditions import PANEL, PROFILE_ALIASES, PROFILES, STYLE_MASK, resolve_condition
 
-__all__ = ["CounterPlay", "FAILURE_OUTCOMES"]
+if TYPE_CHECKING:
+    from cpalgo.counterplay.branches import BranchResult
 
-SelfCounterPlay = TypeVar("SelfCounterPlay", bound="CounterPlay")
+__all__ = ["CounterPlay", "FAILURE_OUTCOMES", "ANCHOR_NETWORK"]
 
-#: Outcome names / codes (cpsim.Outcome) of the episodes that start a search.
-OUTCOME_CODES: dict[str, int] = {"running": 0, "goal": 1, "collision": 2, "offroad": 3, "timeout": 4}
-FAILURE_OUTCOMES: tuple[int, ...] = (2, 3, 4)
-_OUTCOME_NAMES = {v: k for k, v in OUTCOME_CODES.items()}
-
-
-def _outcome_code(value: Any) -> int:
-    """``info["outcome"]`` (name, enum or int) -> integer code; unknown -> -1."""
-    if value is None:
-        return -1
-    if isinstance(value, str):
-        return OUTCOME_CODES.get(value.lower(), -1)
-    try:
-        return int(value)
-    except (TypeError, ValueError):
-        return -1
-
-
-def _to_numpy(x: Any) -> np.ndarray:
-    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
+#: The shipped anchor's network, CounterPlay's default ``policy_kwargs``.
+ANCHOR_NETWORK: dict[str, Any] = dict(lstm_hidden_size=128, enable_critic_lstm=False,
+                                      net_arch=dict(pi=[128, 128], vf=[128, 128]))
 
 
 class CounterPlay(RecurrentPPO):
     """RecurrentPPO with counterfactual retries of failed tasks distilled into the policy.
 
-    Every argument of :class:`sb3_contrib.RecurrentPPO` is accepted unchanged. The
-    CounterPlay arguments (all with defaults, so ``load`` can rebuild the model):
+    Every argument of :class:`sb3_contrib.RecurrentPPO` is accepted. Defaults that differ,
+    so that ``CounterPlay("MlpLstmPolicy", SelfPlayVecEnv())`` trains at batched self-play
+    speed: ``n_steps=64``, ``batch_size=4096`` (live transitions per minibatch),
+    ``n_epochs=3``, ``policy_kwargs=ANCHOR_NETWORK``, and "MlpLstmPolicy" is the fused
+    policy of :mod:`cpalgo.policies`. The CounterPlay arguments (all with defaults, so
+    ``load`` can rebuild the model):
 
     Args:
         counterfactual: run roots / searches / distillation. Needs a branching-capable
@@ -117,9 +105,11 @@ class CounterPlay(RecurrentPPO):
         distill_coef: weight of the distillation term (0.5).
         distill_minibatches: minibatch updates per generation that carry the term (4).
         deploy_condition: profile name or raw 10-vector the student is trained under.
-        branch_cap: branch transitions per generation <= branch_cap x main transitions.
-        post_budget: stop ``learn`` once main + branch transitions reach it (None: never).
-        mask_inactive: mask inactive slots (``info["active"]`` / ``env.active_mask()``).
+        branch_cap: branch transitions of g's searches <= branch_cap x g's main transitions.
+        post_budget: optional hard cap: no generation starts once B_post reaches it
+            (``learn(total_timesteps)`` already counts B_post; None: no extra cap).
+        mask_inactive: skip inactive slots (``info["active"]`` / ``env.active_mask()``) in
+            inference, minibatches, losses and the budget.
         max_searches: optional cap on searches per generation (None: the budget decides).
         keep_searches: searches kept per generation as tensor-free records for inspection
             (``cpalgo.counterplay.records``; 0 keeps nothing).
@@ -131,8 +121,7 @@ class CounterPlay(RecurrentPPO):
 
     #: runtime state that is rebuilt, never saved
     _RUNTIME_ATTRS: ClassVar[tuple[str, ...]] = (
-        "_roots", "_runner", "_requests", "_teachers", "_uniform_generator", "_last_active",
-        "_step_count_before", "_gen_stats", "_deploy_raw", "_sim_for_roots", "_search_records",
+        "_driver", "_teachers", "_last_active", "_deploy_raw", "_search_records", "_progress",
     )
 
     def __init__(
@@ -140,9 +129,9 @@ class CounterPlay(RecurrentPPO):
         policy: str | type[RecurrentActorCriticPolicy],
         env: GymEnv | str,
         learning_rate: float | Schedule = 3e-4,
-        n_steps: int = 128,
-        batch_size: int | None = 128,
-        n_epochs: int = 10,
+        n_steps: int = 64,
+        batch_size: int | None = 4096,
+        n_epochs: int = 3,
         gamma: float = 0.99,
         gae_lambda: float = 0.95,
         clip_range: float | Schedule = 0.2,
@@ -202,7 +191,7 @@ class CounterPlay(RecurrentPPO):
             target_kl=target_kl,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
+            policy_kwargs=deepcopy(ANCHOR_NETWORK) if policy_kwargs is None else policy_kwargs,
             verbose=verbose,
             seed=seed,
             device=device,
@@ -230,6 +219,8 @@ class CounterPlay(RecurrentPPO):
         self.keep_searches = check_keep_searches(keep_searches)
         self._validate_settings()
         self.budget = Budget(branch_cap=float(branch_cap), post_budget=post_budget)
+        #: running totals of every generation's search counts (SearchStats.as_dict keys)
+        self.search_totals: dict[str, float] = {}
         self._reset_runtime()
 
         if _init_setup_model:
@@ -280,6 +271,15 @@ class CounterPlay(RecurrentPPO):
         if self.max_searches is not None and int(self.max_searches) < 0:
             raise ValueError(f"max_searches: must be >= 0 or None, got {self.max_searches!r}")
 
+    def _search_settings(self) -> SearchSettings:
+        return SearchSettings(
+            root_interval=int(self.root_interval), window=(int(self.window[0]), int(self.window[1])),
+            rho=float(self.rho), backtrack=self.backtrack, fixed_depth=int(self.fixed_depth), panel=tuple(self.panel),
+            shared_randomness=self.shared_randomness, style_change=self.style_change, selection=self.selection,
+            verify=self.verify, max_searches=None if self.max_searches is None else int(self.max_searches),
+            seed=int(self.seed or 0),
+        )
+
     def _check_branching_env(self, env: VecEnv | None) -> None:
         """A counterfactual run needs a self-play env the search can branch from."""
         if not self.counterfactual or env is None:
@@ -299,19 +299,19 @@ class CounterPlay(RecurrentPPO):
             raise ValueError(f"env: counterfactual=True needs a Discrete action space, got {self.action_space}")
 
     def _reset_runtime(self) -> None:
-        self._roots: RootStore | None = None
-        self._runner: BranchRunner | None = None
-        self._requests: list[SearchRequest] = []
+        self._driver: SearchDriver | None = None
         self._teachers: list[Teacher] = []
-        self._uniform_generator: th.Generator | None = None
         self._last_active: np.ndarray | None = None
-        self._step_count_before: np.ndarray | None = None
-        self._gen_stats: Counter = Counter()
-        self._sim_for_roots: Any = None
+        self._progress: LearnProgressBar | None = None
 
     @property
     def _branching(self) -> bool:
         return self.counterfactual and self.env is not None
+
+    @property
+    def search_stats(self) -> SearchStats:
+        """Search counts of the last generation (empty before the first one)."""
+        return self._driver.stats if self._driver is not None else SearchStats()
 
     # ================================================================== model setup
     def _setup_model(self) -> None:
@@ -400,49 +400,27 @@ class CounterPlay(RecurrentPPO):
             self._on_env_reset()
         return out
 
-    def learn(
-        self: SelfCounterPlay,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 1,
-        tb_log_name: str = "CounterPlay",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfCounterPlay:
-        """``OnPolicyAlgorithm.learn`` that also stops when ``post_budget`` is reached."""
-        iteration = 0
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        """SB3's, with a progress bar that counts what ``learn`` runs (B_post) and shows
+        the phase of the generation, instead of SB3's slot-step bar."""
+        self._progress = None
+        if progress_bar:
+            callbacks = callback if isinstance(callback, list) else ([] if callback is None else [callback])
+            callbacks = [c if isinstance(c, BaseCallback) else ConvertCallback(c) for c in callbacks]
+            self._progress = LearnProgressBar()
+            callback = CallbackList([*callbacks, self._progress])
+        return super()._init_callback(callback, progress_bar=False)
 
-        total_timesteps, callback = self._setup_learn(
-            total_timesteps,
-            callback,
-            reset_num_timesteps,
-            tb_log_name,
-            progress_bar,
-        )
+    def _set_phase(self, phase: str) -> None:
+        if self._progress is not None:
+            self._progress.set_phase(phase)
 
-        callback.on_training_start(locals(), globals())
-
-        assert self.env is not None
-
-        while self.num_timesteps < total_timesteps and not self.budget.exhausted:
-            continue_training = self.collect_rollouts(self.env, callback, self.rollout_buffer, n_rollout_steps=self.n_steps)
-
-            if not continue_training:
-                break
-
-            iteration += 1
-            self._update_current_progress_remaining(self.num_timesteps, total_timesteps)
-
-            # Display training infos
-            if log_interval is not None and iteration % log_interval == 0:
-                assert self.ep_info_buffer is not None
-                self.dump_logs(iteration)
-
-            self.train()
-
-        callback.on_training_end()
-
-        return self
+    def learn(self, total_timesteps: int, callback: MaybeCallback = None, log_interval: int = 1,
+              tb_log_name: str = "CounterPlay", reset_num_timesteps: bool = True, progress_bar: bool = False) -> Any:
+        """``RecurrentPPO.learn`` where ``total_timesteps`` is B_post: live agent transitions
+        of the main rollouts plus every branch transition (all slots when
+        ``mask_inactive=False``). Stops at the first generation boundary that reaches it."""
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
     # ================================================================== rollout
     def collect_rollouts(
@@ -453,13 +431,16 @@ class CounterPlay(RecurrentPPO):
         n_rollout_steps: int,
     ) -> bool:
         """RecurrentPPO's rollout with hooks: roots and traces before each decision,
-        inverse-CDF sampling from recorded uniforms, activity masks, failure detection
-        after each step, and the generation's searches at the end."""
+        inference on live slots, inverse-CDF sampling from recorded uniforms, activity
+        masks, failure detection after each step, the previous generation's searches in
+        waves between steps. ``num_timesteps`` advances by the transitions that count."""
         assert isinstance(
             rollout_buffer, (RecurrentRolloutBuffer, RecurrentDictRolloutBuffer)
         ), f"{rollout_buffer} doesn't support recurrent policy"
 
         assert self._last_obs is not None, "No previous observation was provided"
+        if self.budget.exhausted:
+            return False  # post_budget reached: SB3's learn loop stops here
         # Switch to eval mode (this affects batch norm / dropout)
         self.policy.set_training_mode(False)
 
@@ -483,16 +464,7 @@ class CounterPlay(RecurrentPPO):
                 # Convert to pytorch tensor or to TensorDict
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)
                 episode_starts = th.tensor(self._last_episode_starts, dtype=th.float32, device=self.device)
-                if self._branching:
-                    actions, values, log_probs, lstm_states = self._branching_policy_step(
-                        env, obs_tensor, lstm_states, episode_starts
-                    )
-                elif self.mask_inactive:
-                    actions, values, log_probs, lstm_states = self._active_policy_step(
-                        obs_tensor, lstm_states, episode_starts
-                    )
-                else:
-                    actions, values, log_probs, lstm_states = self.policy(obs_tensor, lstm_states, episode_starts)
+                actions, values, log_probs, lstm_states = self._policy_step(env, obs_tensor, lstm_states, episode_starts)
 
             actions = actions.cpu().numpy()
 
@@ -504,7 +476,7 @@ class CounterPlay(RecurrentPPO):
 
             new_obs, rewards, dones, infos = env.step(clipped_actions)
 
-            self.num_timesteps += env.num_envs
+            self.num_timesteps += self._counted_transitions(env)
 
             # Give access to local variables
             callback.update_locals(locals())
@@ -540,6 +512,11 @@ class CounterPlay(RecurrentPPO):
             self._last_lstm_states = lstm_states
             self._last_active = new_active
 
+            if self._driver is not None and self._driver.has_pending:
+                self._set_phase("search")
+                self._driver.advance(n_steps, n_rollout_steps)
+                self._set_phase("rollout")
+
         with th.no_grad():
             # Compute value for the last timestep
             episode_starts = th.tensor(dones, dtype=th.float32, device=self.device)
@@ -552,6 +529,13 @@ class CounterPlay(RecurrentPPO):
         callback.on_rollout_end()
 
         return True
+
+    def _counted_transitions(self, env: VecEnv) -> int:
+        """Transitions of the step just taken that count toward B_post: the slots that were
+        live before it (every slot without masking, which is SB3's count)."""
+        if not self.mask_inactive or self._last_active is None:
+            return env.num_envs
+        return int(np.count_nonzero(self._last_active))
 
     def _bootstrap_timeouts(self, rewards: np.ndarray, dones: np.ndarray, infos: list[dict], lstm_states: RNNStates) -> None:
         """Add gamma * V(terminal obs) to truncated episodes' last reward.
@@ -591,7 +575,7 @@ class CounterPlay(RecurrentPPO):
             terminal_values = self.policy.predict_values(obs_t, state, starts).reshape(-1).cpu().numpy()
         rewards[idx] += (self.gamma * terminal_values).astype(rewards.dtype)
 
-    # ------------------------------------------------------------------ activity
+    # ------------------------------------------------------------------ live slots
     def _observed_active(self, env: VecEnv, infos: list[dict] | None) -> np.ndarray:
         """(num_envs,) bool: slots whose current observation belongs to a live agent."""
         if hasattr(env, "active_mask"):
@@ -600,151 +584,66 @@ class CounterPlay(RecurrentPPO):
             return np.fromiter((bool(i.get("active", True)) for i in infos), bool, count=len(infos))
         return np.ones(env.num_envs, bool)
 
+    def _active_index(self, n: int) -> th.Tensor | None:
+        """Indices of the live slots, or None when inference runs on every slot."""
+        active = self._last_active
+        if not self.mask_inactive or active is None or active.size != n or active.all():
+            return None
+        return th.as_tensor(np.flatnonzero(active), device=self.device)
+
+    def _policy_step(
+        self, env: VecEnv, obs_tensor: th.Tensor, lstm_states: RNNStates, episode_starts: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, RNNStates]:
+        """One decision of every slot: the search driver's (roots, recorded draws) when
+        branching, else ``policy.forward`` on the live slots only (inactive slots get
+        action 0, value 0, log-prob 0, which the masked buffer never uses)."""
+        n = obs_tensor.shape[0]
+        idx = self._active_index(n)
+        if self._branching:
+            assert self._driver is not None
+            return self._driver.policy_step(env.sim, self.policy, obs_tensor, lstm_states, episode_starts, idx)
+        if idx is None:
+            return self.policy(obs_tensor, lstm_states, episode_starts)
+        actions, values, log_probs, states = self.policy(obs_tensor[idx], take_states(lstm_states, idx),
+                                                         episode_starts[idx])
+        full_actions = th.zeros((n, *actions.shape[1:]), dtype=actions.dtype, device=self.device)
+        full_values = th.zeros((n, *values.shape[1:]), dtype=values.dtype, device=self.device)
+        full_log_probs = th.zeros(n, dtype=log_probs.dtype, device=self.device)
+        full_actions[idx], full_values[idx], full_log_probs[idx] = actions, values, log_probs
+        return full_actions, full_values, full_log_probs, put_states(lstm_states, idx, states)
+
+    # ------------------------------------------------------------------ hooks
     def _on_env_reset(self) -> None:
         """Called when ``learn`` reset the env: fresh activity mask, stale roots dropped."""
         assert self.env is not None
         self._last_active = self._observed_active(self.env, getattr(self.env, "reset_infos", None))
         if self._branching:
-            self._ensure_branching_state(self.env)
-        if self._roots is not None:
-            self._roots.invalidate()
-        self._requests = []
+            self._ensure_driver(self.env)
+        if self._driver is not None:
+            self._driver.on_env_reset()
 
-    # ------------------------------------------------------------------ hooks
+    def _ensure_driver(self, env: VecEnv) -> None:
+        if self._driver is None:
+            def count(n: int) -> None:
+                self.num_timesteps += int(n)
+
+            self._driver = SearchDriver(self._search_settings(), self.budget, self.device, count_transitions=count)
+            self._driver.on_wave = lambda *wave: keep_wave(self, *wave)
+        transform = None
+        vec_normalize = unwrap_vec_normalize(env)
+        if vec_normalize is not None:
+            def transform(obs: th.Tensor) -> th.Tensor:
+                return th.as_tensor(vec_normalize.normalize_obs(obs.cpu().numpy()), device=obs.device)
+        self._driver.attach(env, self.policy, transform)
+
     def _rollout_start(self, env: VecEnv) -> None:
         self.budget.start_generation()
-        self._gen_stats = Counter()
         if self._last_active is None:
             self._last_active = self._observed_active(env, None)
         if self._branching:
-            self._ensure_branching_state(env)
-
-    def _ensure_branching_state(self, env: VecEnv) -> None:
-        sim = env.sim
-        if self._roots is None or self._sim_for_roots is not sim:
-            lstm = self.policy.lstm_actor
-            self._roots = RootStore(
-                num_worlds=int(env.num_worlds),
-                max_agents=int(env.max_agents),
-                episode_steps=int(sim.config.episode_steps),
-                root_interval=int(self.root_interval),
-                window_end=int(self.window[1]) if self.backtrack == "value" else max(int(self.window[1]), int(self.fixed_depth)),
-                lstm_layers=lstm.num_layers,
-                lstm_hidden=lstm.hidden_size,
-                device=self.device,
-            )
-            self._sim_for_roots = sim
-            self._runner = None
-        if self._uniform_generator is None:
-            self._uniform_generator = th.Generator().manual_seed(int(self.seed or 0) + 7919)
-        if self._runner is None:
-            vec_normalize = unwrap_vec_normalize(env)
-            transform = None
-            if vec_normalize is not None:
-                def transform(obs: th.Tensor) -> th.Tensor:
-                    return th.as_tensor(vec_normalize.normalize_obs(obs.cpu().numpy()), device=obs.device)
-            branch_generator = th.Generator().manual_seed(int(self.seed or 0) + 104729)
-            self._runner = BranchRunner(self._make_branch_simulator(env), self.policy, transform, branch_generator)
-
-    @staticmethod
-    def _make_branch_simulator(env: VecEnv) -> Any:
-        source = env.sim
-
-        def make(num_worlds: int) -> Any:
-            from cpsim.simulator import Simulator
-
-            # the main simulator's static Model is shared: no second road grid / pool build
-            pool = getattr(source, "model", None) or source.scenarios
-            return Simulator(pool, num_worlds=int(num_worlds), max_agents=int(source.max_agents),
-                             config=source.config, device=str(source.device))
-
-        return make
-
-    def _active_index(self, n: int) -> th.Tensor | None:
-        """Indices of the slots whose observation belongs to a live agent, or None when
-        every slot does (then the network runs on the full batch)."""
-        active = self._last_active
-        if active is None or active.size != n or active.all():
-            return None
-        return th.as_tensor(np.flatnonzero(active), device=self.device)
-
-    @staticmethod
-    def _take_states(states: RNNStates, idx: th.Tensor) -> RNNStates:
-        return RNNStates((states.pi[0][:, idx], states.pi[1][:, idx]), (states.vf[0][:, idx], states.vf[1][:, idx]))
-
-    @staticmethod
-    def _put_states(states: RNNStates, idx: th.Tensor, part: RNNStates) -> RNNStates:
-        """``states`` with the columns ``idx`` replaced by ``part`` (inactive slots keep
-        their memory; they restart with an episode start when they come back)."""
-        def put(full: th.Tensor, sub: th.Tensor) -> th.Tensor:
-            out = full.clone()
-            out[:, idx] = sub
-            return out
-
-        return RNNStates((put(states.pi[0], part.pi[0]), put(states.pi[1], part.pi[1])),
-                         (put(states.vf[0], part.vf[0]), put(states.vf[1], part.vf[1])))
-
-    def _active_policy_step(
-        self, obs_tensor: th.Tensor, lstm_states: RNNStates, episode_starts: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, RNNStates]:
-        """``policy.forward`` on the live slots only; inactive slots get action 0, value 0
-        and log-prob 0, which the masked buffer never uses."""
-        n = obs_tensor.shape[0]
-        idx = self._active_index(n)
-        if idx is None:
-            return self.policy(obs_tensor, lstm_states, episode_starts)
-        actions, values, log_probs, states = self.policy(
-            obs_tensor[idx], self._take_states(lstm_states, idx), episode_starts[idx]
-        )
-        full_actions = th.zeros((n, *actions.shape[1:]), dtype=actions.dtype, device=self.device)
-        full_values = th.zeros((n, *values.shape[1:]), dtype=values.dtype, device=self.device)
-        full_log_probs = th.zeros(n, dtype=log_probs.dtype, device=self.device)
-        full_actions[idx], full_values[idx], full_log_probs[idx] = actions, values, log_probs
-        return full_actions, full_values, full_log_probs, self._put_states(lstm_states, idx, states)
-
-    def _branching_policy_step(
-        self, env: VecEnv, obs_tensor: th.Tensor, lstm_states: RNNStates, episode_starts: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, RNNStates]:
-        """Roots (before the decision), one actor+critic pass over the live slots,
-        inverse-CDF sampling from fresh recorded uniforms, trace of values / uniforms /
-        actions (inactive slots: value 0, action 0)."""
-        assert self._roots is not None and self._uniform_generator is not None
-        sim = env.sim
-        step_count = _to_numpy(sim.step_count).astype(np.int64).copy()
-        self._step_count_before = step_count
-        due = self._roots.due(step_count)
-        if due.size:
-            keep = (1.0 - episode_starts).view(1, -1, 1)  # memory the LSTM will actually use
-            pi = (lstm_states.pi[0] * keep, lstm_states.pi[1] * keep)
-            vf = (lstm_states.vf[0] * keep, lstm_states.vf[1] * keep)
-            snapshot = sim.snapshot(due, out=self._roots.take_free(due.size))
-            conditions = _to_numpy(sim.conditions)[due].astype(np.float32)
-            alive = _to_numpy(sim.policy_mask)[due].sum(axis=1)
-            self._roots.store(due, step_count[due], snapshot, pi, vf, conditions, alive)
-
-        n = obs_tensor.shape[0]
-        # one draw per slot whether or not it is live, so the stream does not depend on activity
-        uniforms = th.rand(n, generator=self._uniform_generator).to(self.device)
-        idx = self._active_index(n) if self.mask_inactive else None
-        if idx is None:
-            logits, values, new_states = policy_step_logits(self.policy, obs_tensor, lstm_states, episode_starts)
-            actions = inverse_cdf_sample(logits, uniforms)
-            log_probs = th.log_softmax(logits, dim=-1).gather(-1, actions[:, None]).squeeze(-1)
-        else:
-            logits, sub_values, sub_states = policy_step_logits(
-                self.policy, obs_tensor[idx], self._take_states(lstm_states, idx), episode_starts[idx]
-            )
-            sub_actions = inverse_cdf_sample(logits, uniforms[idx])
-            actions = th.zeros(n, dtype=th.int64, device=self.device)
-            values = th.zeros((n, 1), dtype=sub_values.dtype, device=self.device)
-            log_probs = th.zeros(n, dtype=logits.dtype, device=self.device)
-            actions[idx] = sub_actions
-            values[idx] = sub_values
-            log_probs[idx] = th.log_softmax(logits, dim=-1).gather(-1, sub_actions[:, None]).squeeze(-1)
-            new_states = self._put_states(lstm_states, idx, sub_states)
-        self._roots.record_step(step_count, values.reshape(-1).cpu().numpy(), uniforms.cpu().numpy(),
-                                actions.cpu().numpy())
-        return actions, values, log_probs, new_states
+            self._ensure_driver(env)
+            self._driver.start_rollout()
+        self._set_phase("rollout")
 
     def _after_env_step(self, env: VecEnv, dones: np.ndarray, infos: list[dict]) -> tuple[np.ndarray, np.ndarray | None]:
         """Budget count, failures -> search requests, episode bookkeeping.
@@ -756,180 +655,26 @@ class CounterPlay(RecurrentPPO):
         self.budget.add_main(int(np.count_nonzero(was_active)))
         new_active = self._observed_active(env, infos)
         if self._branching:
-            self._detect_failures(env, dones, infos, was_active)
+            assert self._driver is not None
+            self._driver.after_step(env.sim, dones, infos, was_active)
         revived = None
         if self.mask_inactive:
             revived = new_active & ~was_active & ~np.asarray(dones, bool)
         return new_active, revived
 
-    def _detect_failures(self, env: VecEnv, dones: np.ndarray, infos: list[dict], was_active: np.ndarray) -> None:
-        assert self._roots is not None and self._step_count_before is not None
-        roots = self._roots
-        a = roots.max_agents
-        for idx in np.flatnonzero(np.asarray(dones, bool) & was_active).tolist():
-            code = _outcome_code(infos[idx].get("outcome"))
-            if code not in FAILURE_OUTCOMES:
-                continue
-            self._gen_stats["failures"] += 1
-            self._gen_stats[f"failures_{_OUTCOME_NAMES[code]}"] += 1
-            w, slot = divmod(idx, a)
-            failure_step = int(self._step_count_before[w])
-            root_steps, _ = roots.roots_of(w)
-            root_steps = root_steps[root_steps <= failure_step]
-            root = select_root(
-                roots.values[w, slot], root_steps, failure_step,
-                window=self.window, rho=self.rho, mode=self.backtrack, fixed_depth=self.fixed_depth,
-            )
-            if root is None:
-                self._gen_stats["failures_without_root"] += 1
-                continue
-            self._requests.append(roots.request(w, slot, failure_step, code, root))
-        step_after = _to_numpy(env.sim.step_count).astype(np.int64)
-        reset = np.flatnonzero(step_after <= self._step_count_before)
-        roots.new_episodes(reset)
-
     def _rollout_end(self, env: VecEnv) -> None:
-        start = time.process_time()
-        if self._branching and self._requests:
-            self._run_searches()
-        self._gen_stats["search_cpu_s"] = time.process_time() - start
-        if self._roots is not None:
-            self._roots.collect_garbage()
-        self._requests = []
+        """Finish the previous generation's searches (their teachers go to this update)
+        and queue this generation's for the next rollout."""
+        if self._driver is not None and self._branching:
+            self._set_phase("search")
+            self._driver.end_rollout(self.policy, self.budget.generation_main)
+            self._teachers = self._driver.take_teachers()
+            stats = self._driver.stats
+            for key, value in stats.as_dict().items():
+                self.search_totals[key] = self.search_totals.get(key, 0) + value
         summary = self.budget.end_generation()
         self._log_generation(summary)
-
-    # ================================================================== search
-    def _candidate_conditions(self, base: np.ndarray, focal: int) -> np.ndarray:
-        """(1 + J, A, 10): factual w0 then one world per panel profile (focal style only)."""
-        out = np.repeat(base[None].astype(np.float32), 1 + len(self.panel), axis=0)
-        if self.style_change:
-            for j, name in enumerate(self.panel, start=1):
-                style = PROFILES[PROFILE_ALIASES.get(name, name)]
-                out[j, focal, STYLE_MASK] = style[STYLE_MASK]
-        return out
-
-    def _independent_flags(self, num_branches: int) -> np.ndarray:
-        flags = np.zeros(num_branches, bool)
-        if not self.shared_randomness:
-            flags[:] = True
-        elif not self.style_change:
-            flags[1:] = True  # otherwise the candidates would replay the factual branch
-        return flags
-
-    def _run_searches(self) -> None:
-        """Budgeted searches of this generation, in waves; fills teachers.
-
-        A search is admitted when its projected cost (an upper bound: every agent alive at
-        the root runs to the deadline in every branch) fits the generation's remaining
-        allowance. Branches end early when agents finish, so after each wave the allowance
-        is recomputed from the transitions actually run and the searches that did not fit
-        are offered again; the cap holds throughout.
-        """
-        assert self._runner is not None
-        stats = self._gen_stats
-        n_branch = 1 + len(self.panel)
-        per_search = n_branch + (2 if self.verify else 0)
-        pending = list(self._requests)
-        if self.max_searches is not None:
-            stats["searches_skipped"] += max(0, len(pending) - int(self.max_searches))
-            pending = pending[: int(self.max_searches)]
-        while pending:
-            accepted: list[SearchRequest] = []
-            rest: list[SearchRequest] = []
-            projected = 0
-            for req in pending:
-                cost = req.projected_transitions(per_search)
-                if self.budget.fits(projected + cost):
-                    accepted.append(req)
-                    projected += cost
-                else:
-                    rest.append(req)
-            if not accepted:
-                break
-            self._run_wave(accepted, n_branch)
-            pending = rest
-        stats["searches_skipped"] += len(pending)
-        stats["teachers"] = len(self._teachers)
-
-    def _run_wave(self, accepted: list[SearchRequest], n_branch: int) -> None:
-        """Run one batch of searches (all branches together), rank, verify, keep teachers."""
-        stats = self._gen_stats
-        stats["searches"] += len(accepted)
-        stats["search_waves"] += 1
-        for req in accepted:
-            stats[f"root_depth_{req.depth}"] += 1
-        stats["root_depth_sum"] += sum(r.depth for r in accepted)
-
-        jobs = [
-            BranchJob(
-                snapshot=req.snapshot, snapshot_row=req.snapshot_row,
-                conditions=self._candidate_conditions(req.conditions, req.focal),
-                pi_state=req.pi_state, vf_state=req.vf_state, focal=req.focal,
-                root_step=req.root_step, deadline=req.deadline,
-                independent_focal=self._independent_flags(n_branch), record=True,
-            )
-            for req in accepted
-        ]
-        results = self._runner.run(jobs)
-        chosen: list[tuple[SearchRequest, BranchJob, BranchResult, int]] = []
-        for req, job, res in zip(accepted, jobs, results):
-            self.budget.add_branch(factual=int(res.transitions[0]), candidate=int(res.transitions[1:].sum()))
-            factual, candidates = res.outcomes[0], res.outcomes[1:]
-            stats["factual_completed"] += int(factual.completed)
-            stats["admissible"] += sum(admit(factual, c) for c in candidates)
-            j = choose_teacher(factual, candidates, self.selection)
-            if j is not None:
-                chosen.append((req, job, res, j))
-        stats["teachers_chosen"] += len(chosen)
-
-        passed = [True] * len(chosen)
-        if self.verify and chosen:
-            vjobs = [
-                BranchJob(
-                    snapshot=req.snapshot, snapshot_row=req.snapshot_row,
-                    conditions=job.conditions[[0, 1 + j]],
-                    pi_state=req.pi_state, vf_state=req.vf_state, focal=req.focal,
-                    root_step=req.root_step, deadline=req.deadline,
-                    independent_focal=self._independent_flags(n_branch)[[0, 1 + j]], record=False,
-                )
-                for req, job, _, j in chosen
-            ]
-            vresults = self._runner.run(vjobs)
-            for k, vres in enumerate(vresults):
-                self.budget.add_branch(verification=int(vres.transitions.sum()))
-                passed[k] = verify(vres.outcomes[0], vres.outcomes[1])
-            stats["verified"] += int(sum(passed))
-            stats["verification_failed"] += len(chosen) - int(sum(passed))
-        keep_wave(self, accepted, results, chosen, passed, vresults if self.verify and chosen else None)
-
-        for (req, job, res, j), ok in zip(chosen, passed):
-            if not ok:
-                continue
-            teacher = self._make_teacher(req, res, 1 + j)
-            if teacher is not None:
-                self._teachers.append(teacher)
-                stats[f"profile_{self.panel[j]}"] += 1
-
-    def _make_teacher(self, req: SearchRequest, res: BranchResult, branch: int) -> Teacher | None:
-        """The winning branch's focal trajectory from the root to the end of its task."""
-        assert res.focal_alive is not None and res.focal_obs is not None and res.focal_logits is not None
-        alive = res.focal_alive[branch].cpu().numpy()
-        length = int(np.argmin(alive)) if not alive.all() else alive.size
-        if length == 0:
-            return None
-        return Teacher(
-            obs=res.focal_obs[branch, :length].detach().clone(),
-            logits=res.focal_logits[branch, :length].detach().clone(),
-            actions=res.focal_actions[branch, :length].detach().clone(),
-            rewards=res.focal_rewards[branch, :length].detach().clone(),
-            pi_state=(req.pi_state[0][:, req.focal].clone(), req.pi_state[1][:, req.focal].clone()),
-            vf_state=(req.vf_state[0][:, req.focal].clone(), req.vf_state[1][:, req.focal].clone()),
-            condition=req.conditions[req.focal].copy(),
-            profile=self.panel[branch - 1],
-            root_step=req.root_step,
-            failure_step=req.failure_step,
-        )
+        self._set_phase("train")
 
     def replay_root(self, world: int, root_step: int, main_draws: bool = True) -> BranchResult:
         """Re-run a stored root of ``world``'s current episode as one factual branch.
@@ -939,59 +684,36 @@ class CounterPlay(RecurrentPPO):
         actions and trajectory: the check that branches start from the true state.
         Returns the :class:`BranchResult` (``actions`` (1, T, A), ``xy`` (1, T + 1, A, 2)).
         """
-        if self._roots is None or self._runner is None:
+        if self._driver is None:
             raise ValueError("world: no roots recorded yet (counterfactual=True and a rollout are needed)")
-        roots = self._roots
-        steps, positions = roots.roots_of(int(world))
-        match = positions[steps == int(root_step)]
-        if match.size == 0:
-            raise ValueError(f"root_step: no root at decision {root_step} in world {world}'s current episode")
-        p = int(match[0])
-        draws = None
-        if main_draws:
-            trace = roots.uniforms[world, :, root_step:roots.episode_steps].T  # (steps, A)
-            recorded = ~np.isnan(trace).any(axis=1)
-            n = int(np.argmin(recorded)) if not recorded.all() else recorded.size
-            draws = trace[:n].copy()
-        job = BranchJob(
-            snapshot=roots.snapshots[int(roots.snapshot_id[world, p])],
-            snapshot_row=int(roots.snapshot_row[world, p]),
-            conditions=roots.conditions[world, p][None].copy(),
-            pi_state=(roots.pi_h[world, p], roots.pi_c[world, p]),
-            vf_state=(roots.vf_h[world, p], roots.vf_c[world, p]),
-            focal=0, root_step=int(root_step), deadline=roots.episode_steps, uniforms=draws, record=False,
-        )
-        return self._runner.run([job])[0]
+        return self._driver.replay_root(self.policy, world, root_step, main_draws)
 
     # ================================================================== logging
     def _log_generation(self, summary: dict[str, int]) -> None:
         if not self.counterfactual:
             return
-        s = self._gen_stats
-        # running totals over every generation of this model (for summaries and reports)
-        totals = self.__dict__.setdefault("search_totals", {})
-        for key, value in s.items():
-            totals[key] = totals.get(key, 0) + value
+        s = self.search_stats
         record = self.logger.record
-        record("counterplay/failures", s["failures"])
+        record("counterplay/failures", s.failures)
         for name in ("collision", "offroad", "timeout"):
-            record(f"counterplay/failures_{name}", s[f"failures_{name}"])
-        record("counterplay/failures_without_root", s["failures_without_root"])
-        record("counterplay/searches", s["searches"])
-        record("counterplay/searches_skipped", s["searches_skipped"])
-        record("counterplay/search_waves", s["search_waves"])
-        record("counterplay/root_depth_mean", s["root_depth_sum"] / s["searches"] if s["searches"] else 0.0)
-        for key in sorted(k for k in s if k.startswith("root_depth_") and k[11:].isdigit()):
-            record(f"counterplay/roots_by_depth/{key[11:]}", s[key])
-        record("counterplay/admissible", s["admissible"])
-        record("counterplay/teachers_chosen", s["teachers_chosen"])
-        record("counterplay/verified_teachers", s["teachers"])
-        chosen = s["teachers_chosen"]
-        record("counterplay/verification_pass_rate", (s["verified"] / chosen) if (self.verify and chosen) else float("nan"))
+            record(f"counterplay/failures_{name}", s.failures_by_outcome[name])
+        record("counterplay/failures_without_root", s.failures_without_root)
+        record("counterplay/searches", s.searches)
+        record("counterplay/searches_skipped", s.searches_skipped)
+        record("counterplay/search_waves", s.search_waves)
+        record("counterplay/root_depth_mean", s.root_depth_mean)
+        for depth in sorted(s.root_depths):
+            record(f"counterplay/roots_by_depth/{depth}", s.root_depths[depth])
+        record("counterplay/admissible", s.admissible)
+        record("counterplay/teachers_chosen", s.teachers_chosen)
+        record("counterplay/verified_teachers", s.teachers)
+        chosen = s.teachers_chosen
+        record("counterplay/verification_pass_rate", (s.verified / chosen) if (self.verify and chosen) else float("nan"))
         for name in self.panel:
-            record(f"counterplay/profile/{name}", s[f"profile_{name}"])
+            record(f"counterplay/profile/{name}", s.profiles[name])
         gen_total = summary["main"] + summary["branch"]
-        record("counterplay/search_cpu_s", s["search_cpu_s"])
+        record("counterplay/search_cpu_s", s.search_cpu_s)
+        record("counterplay/search_wall_s", s.search_wall_s)
         record("counterplay/branch_share", summary["branch"] / gen_total if gen_total else 0.0)
         for key in ("main", "factual", "candidate", "verification", "total"):
             record(f"counterplay/budget_{key}", getattr(self.budget, key))

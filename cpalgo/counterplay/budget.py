@@ -1,9 +1,10 @@
 """Budget accounting of CounterPlay post-training.
 
 B_post = main + factual + candidate (+ verification) transitions. One transition is one
-agent stepping once: every live agent of every branch world counts, rejected retries
-included. Branch transitions of one generation are capped at ``branch_cap`` times the
-main transitions of that generation.
+live agent stepping once: every live agent of every branch world counts, rejected retries
+included. The searches of generation g run during generation g+1; their branch
+transitions are capped at ``branch_cap`` times g's main transitions (the allowance opened
+at the end of g's rollout).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ class Budget:
         post_budget: stop ``learn`` once ``total`` reaches it (``None``: no limit).
         main, factual, candidate, verification: running totals since construction.
         generation_main, generation_branch: totals of the generation in progress.
+        allowance_main: main transitions of the generation whose searches run now (the
+            cap applies to them); allowance_used: branch transitions those searches ran.
         generations: completed generations.
     """
 
@@ -34,6 +37,8 @@ class Budget:
     verification: int = 0
     generation_main: int = 0
     generation_branch: int = 0
+    allowance_main: int = 0
+    allowance_used: int = 0
     generations: int = 0
     history: list[dict[str, int]] = field(default_factory=list, repr=False)
 
@@ -73,10 +78,16 @@ class Budget:
         self.main += int(transitions)
         self.generation_main += int(transitions)
 
+    def open_allowance(self, main_transitions: int) -> None:
+        """The searches of a generation with ``main_transitions`` main transitions start:
+        they may run ``branch_cap`` times as many branch transitions."""
+        self.allowance_main = int(main_transitions)
+        self.allowance_used = 0
+
     @property
     def generation_allowance(self) -> int:
-        """Branch transitions still allowed in this generation under the cap."""
-        return max(0, int(self.branch_cap * self.generation_main) - self.generation_branch)
+        """Branch transitions the searches now running may still use under the cap."""
+        return max(0, int(self.branch_cap * self.allowance_main) - self.allowance_used)
 
     def fits(self, projected: int) -> bool:
         """Whether a projected number of branch transitions still fits this generation."""
@@ -87,12 +98,15 @@ class Budget:
         self.factual += int(factual)
         self.candidate += int(candidate)
         self.verification += int(verification)
-        self.generation_branch += int(factual) + int(candidate) + int(verification)
+        n = int(factual) + int(candidate) + int(verification)
+        self.generation_branch += n
+        self.allowance_used += n
 
     def end_generation(self) -> dict[str, int]:
         """Close the generation; returns and keeps its summary."""
         self.generations += 1
-        summary = {"main": self.generation_main, "branch": self.generation_branch}
+        summary = {"main": self.generation_main, "branch": self.generation_branch,
+                   "cap_main": self.allowance_main}
         self.history.append(summary)
         return summary
 

@@ -188,6 +188,17 @@ class RootStore:
         """After an external reset of every world (``env.reset()``)."""
         self.new_episodes(np.arange(self.num_worlds))
 
+    def drop_roots(self, pinned: list[Any] | tuple[Any, ...] = ()) -> None:
+        """A new generation starts: every stored root stops being usable.
+
+        Roots belong to the generation that recorded them, so a root choice never mixes
+        the values of two critics. Snapshots in ``pinned`` (still needed by queued
+        requests) are not recycled.
+        """
+        self.root_step[:] = -1
+        self.snapshot_id[:] = -1
+        self.collect_garbage(pinned=pinned)
+
     # ------------------------------------------------------------------ search requests
     def roots_of(self, world: int) -> tuple[np.ndarray, np.ndarray]:
         """(root decisions, ring positions) of ``world``'s current episode."""
@@ -220,19 +231,19 @@ class RootStore:
             values=self.values[world, focal, : failure_step + 1].copy(),
         )
 
-    def collect_garbage(self, recycle: bool = True) -> None:
+    def collect_garbage(self, recycle: bool = True, pinned: list[Any] | tuple[Any, ...] = ()) -> None:
         """Drop snapshots no ring entry refers to any more.
 
-        Call it only when no :class:`SearchRequest` still needs its snapshot (after the
-        generation's searches): with ``recycle`` the dropped snapshots are kept for reuse
-        by :meth:`take_free`.
+        With ``recycle`` the dropped snapshots are kept for reuse by :meth:`take_free`,
+        except those in ``pinned``: a queued :class:`SearchRequest` still reads them.
         """
         live = set(np.unique(self.snapshot_id[self.snapshot_id >= 0]).tolist())
+        keep = {id(snap) for snap in pinned}
         for sid in list(self.snapshots):
             if sid not in live:
                 snap = self.snapshots.pop(sid)
                 n = getattr(snap, "num_worlds", None)
-                if recycle and isinstance(n, int):
+                if recycle and isinstance(n, int) and id(snap) not in keep:
                     pool = self._free.setdefault(n, [])
                     if len(pool) < self.ring:  # bounded: never more than one ring's worth
                         pool.append(snap)

@@ -67,7 +67,7 @@ def test_inactive_slots_do_not_change_the_update():
 def test_buffer_mask_marks_inactive_and_revived_slots():
     model = CounterPlay("MlpLstmPolicy", SlotVecEnv(0), counterfactual=False, seed=1, n_steps=16, batch_size=None,
                         n_epochs=1, device="cpu", policy_kwargs=dict(lstm_hidden_size=8, net_arch=[8]))
-    model.learn(16 * 4)
+    model.learn(16 * (2 + 1) - 7)  # learn counts B_post: one generation of live transitions
     buf = model.rollout_buffer
     active = np.asarray(buf.active).reshape(4, 16)  # flattened per env after get()
     assert active[3].sum() == 0 and active[0].all() and active[1].all()
@@ -76,6 +76,7 @@ def test_buffer_mask_marks_inactive_and_revived_slots():
     # slot 2 comes back at step 12 without a done: its LSTM memory restarts there
     assert starts[2, 12] == 1.0 and starts[0, 12] == 0.0
     assert model.budget.main == 16 * (2 + 1) - 7  # active slot transitions only
+    assert model.num_timesteps == model.budget.total == model.budget.main and model.budget.generations == 1
 
 
 @pytest.mark.parametrize(
@@ -118,14 +119,22 @@ def test_budget_cap_and_totals():
     b = Budget(branch_cap=0.5)
     b.start_generation()
     b.add_main(1000)
+    assert b.generation_allowance == 0  # nothing searched yet: the first generation has no allowance
+    b.end_generation()
+    # generation 2 runs generation 1's searches against 0.5 x generation 1's main transitions
+    b.start_generation()
+    b.open_allowance(1000)
+    b.add_main(300)
     assert b.generation_allowance == 500 and b.fits(500) and not b.fits(501)
     b.add_branch(factual=100, candidate=250, verification=50)
     assert b.generation_allowance == 100 and not b.fits(101)
-    b.end_generation()
-    assert (b.main, b.branch, b.total) == (1000, 400, 1400)
-    assert b.branch_share == pytest.approx(400 / 1400)
+    summary = b.end_generation()
+    assert summary == {"main": 300, "branch": 400, "cap_main": 1000}
+    assert (b.main, b.branch, b.total) == (1300, 400, 1700)
+    assert b.branch_share == pytest.approx(400 / 1700)
     b.start_generation()
-    assert b.generation_allowance == 0  # a new generation earns its allowance from its own main steps
+    b.open_allowance(300)
+    assert b.generation_allowance == 150  # a fresh allowance from the searched generation's main steps
     with pytest.raises(ValueError, match="branch_cap"):
         Budget(branch_cap=0)
     with pytest.raises(ValueError, match="post_budget"):

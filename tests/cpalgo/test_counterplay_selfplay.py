@@ -10,7 +10,7 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-import cpalgo.counterplay.algorithm as algorithm_module  # noqa: E402
+import cpalgo.counterplay.driver as driver_module  # noqa: E402
 from cpalgo import CounterPlay  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
@@ -74,9 +74,9 @@ def test_factual_replay_with_main_draws_reproduces_the_rollout(device):
     n = 20
     _, callback = model._setup_learn(n * env.num_envs, rec)
     callback.on_training_start(locals(), globals())
-    first_episode = model._roots.episode.copy()
+    first_episode = model._driver.roots.episode.copy()
     assert model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=n)
-    roots = model._roots
+    roots = model._driver.roots
     worlds = np.flatnonzero(roots.episode == first_episode)
     assert worlds.size, "every world reset during 20 decisions: the test needs a longer episode"
     w = int(worlds[0])
@@ -100,17 +100,19 @@ def test_searches_respect_the_branch_cap_and_are_logged(tmp_path):
     env = make_env(1)
     model = make_model(env, branch_cap=3.0, verify=True)
     model.set_logger(configure(str(tmp_path), ["csv"]))
-    model.learn(2 * EPISODE * env.num_envs)
+    for _ in range(3):  # the searches of generation g run during generation g+1
+        model.learn(1, reset_num_timesteps=False)
     b = model.budget
-    assert b.generations == 2
+    assert b.generations == 3
+    assert b.history[0]["branch"] == 0  # nothing to search before the first rollout ends
     for gen in b.history:
-        assert gen["branch"] <= 3.0 * gen["main"]
+        assert gen["branch"] <= 3.0 * gen["cap_main"]
     assert b.factual > 0 and b.candidate > 0, "no search ran: no failure with a root in the window"
     assert b.candidate >= 4 * b.factual  # five candidates per factual branch, similar lengths
     assert b.total == b.main + b.factual + b.candidate + b.verification
     with open(tmp_path / "progress.csv") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == 2
+    assert len(rows) == 3
     for key in ("failures", "searches", "searches_skipped", "admissible", "verified_teachers",
                 "verification_pass_rate", "branch_share", "budget_total", "profile/cautious", "root_depth_mean"):
         assert f"counterplay/{key}" in rows[0], key
@@ -119,35 +121,43 @@ def test_searches_respect_the_branch_cap_and_are_logged(tmp_path):
     assert float(rows[-1]["counterplay/budget_total"]) == b.total
     depth_columns = [k for k in rows[0] if k.startswith("counterplay/roots_by_depth/")]
     assert sum(float(r[k] or 0) for r in rows for k in depth_columns) == searches
-    for r in rows:
-        assert float(r["counterplay/branch_share"]) <= 3.0 / 4.0
+    assert model.num_timesteps == b.total  # learn counts B_post, branches included
 
 
 def test_default_cap_skips_searches_it_cannot_afford():
     env = make_env(1)
     model = make_model(env, branch_cap=0.01)
-    model.learn(EPISODE * env.num_envs)
+    model.learn(1)
+    first = model.search_stats
+    assert first.failures > 0 and first.searches == 0
+    model.learn(1, reset_num_timesteps=False)  # generation 1's searches come up in generation 2
     assert model.budget.branch == 0
-    assert model._gen_stats["failures"] > 0
-    assert model._gen_stats["searches_skipped"] + model._gen_stats["failures_without_root"] == model._gen_stats["failures"]
+    second = model.search_stats
+    assert second.searches_skipped == first.failures - first.failures_without_root
 
 
 def _force_teachers(monkeypatch, verified: bool) -> None:
     # a random policy rarely completes a task, so pick the first candidate as the teacher
     # and decide the verification: what is tested is the pipeline around them
-    monkeypatch.setattr(algorithm_module, "choose_teacher", lambda factual, candidates, selection: 0)
-    monkeypatch.setattr(algorithm_module, "verify", lambda factual, candidate: verified)
+    monkeypatch.setattr(driver_module, "choose_teacher", lambda factual, candidates, selection: 0)
+    monkeypatch.setattr(driver_module, "verify", lambda factual, candidate: verified)
+
+
+def two_generations(model) -> None:
+    """Rollout 1 records failures; rollout 2 searches them; update 2 distils them."""
+    model.learn(1)
+    model.learn(1, reset_num_timesteps=False)
 
 
 def test_failed_verification_discards_the_search(monkeypatch):
     _force_teachers(monkeypatch, verified=False)
     env = make_env(1)
     model = make_model(env, branch_cap=3.0)
-    model.learn(EPISODE * env.num_envs)
-    stats = model._gen_stats
-    assert stats["teachers_chosen"] > 0
-    assert stats["verification_failed"] == stats["teachers_chosen"]
-    assert stats["teachers"] == 0 and model.budget.verification > 0
+    two_generations(model)
+    stats = model.search_stats
+    assert stats.teachers_chosen > 0
+    assert stats.verification_failed == stats.teachers_chosen
+    assert stats.teachers == 0 and model.budget.verification > 0
 
 
 def test_verified_teachers_are_distilled(monkeypatch):
@@ -168,19 +178,21 @@ def test_verified_teachers_are_distilled(monkeypatch):
         return batch
 
     model._prepare_distillation = spy
-    model.learn(EPISODE * env.num_envs)
-    assert seen and seen[0] == model._gen_stats["teachers"] > 0
+    model.learn(1)
+    assert not seen  # generation 1's failures are searched during generation 2
+    model.learn(1, reset_num_timesteps=False)
+    assert seen and seen[0] == model.search_stats.teachers > 0
     assert np.isfinite(model.logger.name_to_value.get("counterplay/distill_kl", 0.0))
 
 
 def test_save_load_continue_with_branching(tmp_path):
     env = make_env(2)
-    model = make_model(env, branch_cap=3.0).learn(EPISODE * env.num_envs)
+    model = make_model(env, branch_cap=3.0).learn(1)
     model.save(tmp_path / "cp")
     loaded = CounterPlay.load(tmp_path / "cp.zip", env=env, device="cpu")
     assert loaded.counterfactual and loaded.branch_cap == 3.0
     assert loaded.budget.total == model.budget.total
-    loaded.learn(EPISODE * env.num_envs, reset_num_timesteps=False)
+    loaded.learn(1, reset_num_timesteps=False)
     assert loaded.budget.generations == 2 and loaded.budget.main > model.budget.main
 
 
@@ -196,16 +208,63 @@ def test_ablations_run_end_to_end(monkeypatch, ablation):
     env = make_env(1)
     model = make_model(env, branch_cap=3.0, **ablation)
     before = {k: v.clone() for k, v in model.policy.state_dict().items()}
-    model.learn(EPISODE * env.num_envs)
-    stats = model._gen_stats
-    assert stats["searches"] > 0 and model.budget.candidate > 0
+    two_generations(model)
+    stats = model.search_stats
+    assert stats.searches > 0 and model.budget.candidate > 0
     if ablation.get("verify") is False:
         assert model.budget.verification == 0
     else:
         assert model.budget.verification > 0
     if ablation.get("backtrack") == "fixed":
-        depths = [int(k[len("root_depth_"):]) for k in stats if k[len("root_depth_"):].isdigit()]
+        depths = list(stats.root_depths)
         assert depths and all(abs(d - 10) <= 2 for d in depths)  # roots every 5 decisions
-    assert stats["teachers"] > 0
+    assert stats.teachers > 0
     after = model.policy.state_dict()
     assert not all(th.equal(before[k], after[k]) for k in before)
+
+
+def test_roots_belong_to_their_generation_and_searches_use_the_frozen_policy():
+    env = make_env(1)
+    model = make_model(env, branch_cap=3.0)
+    model.learn(1)
+    driver = model._driver
+    assert driver.has_pending, "generation 1 queued no search"
+    frozen = {k: v.clone() for k, v in driver._frozen.state_dict().items()}
+    after_update = model.policy.state_dict()
+    # the searches of generation 1 run under the policy of rollout 1, not the updated one
+    assert not all(th.equal(frozen[k], after_update[k]) for k in frozen)
+    start = model._rollout_start
+
+    def check_start(env_):
+        start(env_)
+        roots = driver.roots
+        assert (roots.root_step < 0).all(), "a root of generation 1 survived into generation 2"
+        assert all(roots.roots_of(w)[0].size == 0 for w in range(roots.num_worlds))
+
+    model._rollout_start = check_start
+    runner, used = driver.runner, []
+    run = runner.run
+
+    def spy(jobs):
+        used.append(all(th.equal(frozen[k], v) for k, v in runner.policy.state_dict().items()))
+        return run(jobs)
+
+    runner.run = spy
+    model.learn(1, reset_num_timesteps=False)
+    assert model.search_stats.searches > 0
+    assert used and all(used)
+
+
+def test_learn_counts_b_post_and_the_progress_bar_ends_at_what_ran(capsys):
+    env = make_env(1)
+    model = make_model(env, branch_cap=3.0)
+    per_generation_main = None
+    model.learn(3 * EPISODE, progress_bar=True)
+    b = model.budget
+    per_generation_main = b.history[0]["main"]
+    assert model.num_timesteps == b.total
+    # stops at the first generation boundary at or past the target
+    assert b.total >= 3 * EPISODE and b.total - b.history[-1]["main"] - b.history[-1]["branch"] < 3 * EPISODE
+    assert per_generation_main < EPISODE * env.num_envs  # inactive slots do not count
+    err = capsys.readouterr().err
+    assert f"{b.total}/{b.total}" in err.replace(",", "") or "100%" in err

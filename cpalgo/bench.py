@@ -1,0 +1,213 @@
+"""Learn throughput: sb3-contrib's RecurrentPPO vs the fused policy vs CounterPlay.
+
+    python -m cpalgo.bench --worlds 16 --agents 8 --n-steps 64 --generations 3
+
+Four learners train on identical :class:`cpsim.SelfPlayVecEnv` copies (procedural training
+pool, conditions from p_train) with the same network (the shipped anchor's by default) and
+the same hyperparameters:
+
+* ``stock``: ``RecurrentPPO`` with sb3-contrib's ``MlpLstmPolicy`` (stepping LSTM);
+* ``fused``: ``RecurrentPPO`` with :class:`cpalgo.policies.MlpLstmPolicy`;
+* ``ppo``: ``CounterPlay(counterfactual=False)``: fused policy, inactive slots skipped in
+  rollout inference and in every minibatch (what PPO-Continue runs);
+* ``counterplay``: ``CounterPlay`` with every feature on (roots, searches, verification,
+  distillation).
+
+One warm-up generation each comes first (Warp module load, branch simulator build); the
+timed generations then alternate between the learners, so load from other processes on a
+shared machine hits all of them alike, and medians are reported. Throughput is given in
+slot-steps/s (SB3's ``num_timesteps``: every VecEnv index per step) and in active
+transitions/s (slots holding a live policy agent), with a per-phase breakdown of each
+generation: rollout, search, train.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+import numpy as np
+import torch as th
+
+from cpalgo.counterplay.bench import _attach_memory_logger
+
+__all__ = ["run_learn_benchmark", "main", "LEARNERS"]
+
+LEARNERS = ("stock", "fused", "ppo", "counterplay")
+
+
+def _phase_timer(model: Any) -> dict[str, list[float]]:
+    """Wrap ``collect_rollouts`` and ``train`` of one instance to record wall seconds.
+
+    CounterPlay's searches run inside ``collect_rollouts``; their share is read from the
+    generation's ``counterplay/search_wall_s`` log entry and taken out of the rollout.
+    """
+    times: dict[str, list[float]] = {"collect": [], "train": []}
+    collect, train = model.collect_rollouts, model.train
+
+    def timed_collect(*args: Any, **kwargs: Any) -> bool:
+        start = time.perf_counter()
+        out = collect(*args, **kwargs)
+        times["collect"].append(time.perf_counter() - start)
+        return out
+
+    def timed_train() -> None:
+        start = time.perf_counter()
+        train()
+        times["train"].append(time.perf_counter() - start)
+
+    model.collect_rollouts, model.train = timed_collect, timed_train
+    return times
+
+
+def _anchor_network(anchor: str | None) -> dict[str, Any]:
+    from cpalgo.recipes import shipped_path
+
+    path = anchor or str(shipped_path("anchor.zip"))
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    data, _, _ = load_from_zip_file(path, device="cpu", load_data=True)
+    return dict(data.get("policy_kwargs") or {})
+
+
+def _make(name: str, env: Any, common: dict[str, Any]) -> Any:
+    from sb3_contrib import RecurrentPPO
+
+    from cpalgo.counterplay.algorithm import CounterPlay
+    from cpalgo.policies import MlpLstmPolicy
+
+    if name == "stock":
+        return RecurrentPPO("MlpLstmPolicy", env, **common)
+    if name == "fused":
+        return RecurrentPPO(MlpLstmPolicy, env, **common)
+    if name == "ppo":
+        return CounterPlay("MlpLstmPolicy", env, counterfactual=False, **common)
+    return CounterPlay("MlpLstmPolicy", env, **common)
+
+
+def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, generations: int = 3,
+                        batch_size: int = 4096, n_epochs: int = 3, anchor: str | None = None,
+                        learners: tuple[str, ...] = LEARNERS, seed: int = 0, threads: int | None = None,
+                        init_weights: bool = True) -> dict[str, Any]:
+    """Time the learners; returns a JSON-able summary (see the module docstring).
+
+    Args:
+        worlds, agents: ``SelfPlayVecEnv`` size (slots = worlds x agents).
+        n_steps, batch_size, n_epochs: PPO settings shared by every learner.
+        anchor: checkpoint whose network (and, with ``init_weights``, weights) every
+            learner uses; default the shipped anchor.
+        threads: torch intra-op threads (None: leave torch's choice).
+    """
+    from cpsim import SelfPlayVecEnv
+
+    unknown = [n for n in learners if n not in LEARNERS]
+    if unknown:
+        raise ValueError(f"learners: unknown {unknown}; accepted: {list(LEARNERS)}")
+    if threads is not None:
+        th.set_num_threads(int(threads))
+    policy_kwargs = _anchor_network(anchor)
+    common = dict(n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs, seed=seed, device="cpu",
+                  policy_kwargs=policy_kwargs)
+    models: dict[str, Any] = {}
+    for name in learners:
+        env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
+        model = _make(name, env, common)
+        if init_weights:
+            from cpalgo.recipes import shipped_path
+
+            model.set_parameters(anchor or str(shipped_path("anchor.zip")), exact_match=False, device="cpu")
+        models[name] = model
+    writers = {name: _attach_memory_logger(m) for name, m in models.items()}
+    n_envs = worlds * agents
+    for model in models.values():
+        model.learn(n_steps * n_envs)  # warm-up generation
+    for w in writers.values():
+        w.rows.clear()
+    phases = {name: _phase_timer(m) for name, m in models.items()}
+    walls: dict[str, list[float]] = {name: [] for name in models}
+    active: dict[str, list[int]] = {name: [] for name in models}
+    for _ in range(generations):
+        for name, model in models.items():
+            buffer = model.rollout_buffer
+            start = time.perf_counter()
+            model.learn(n_steps * n_envs, reset_num_timesteps=False)
+            walls[name].append(time.perf_counter() - start)
+            act = getattr(buffer, "active", None)
+            env = model.get_env()
+            # the plain RecurrentPPO buffer stores no activity: count live slots from the env's record
+            active[name].append(int(np.count_nonzero(act)) if act is not None else -1)
+            del env
+
+    out: dict[str, Any] = {
+        "worlds": worlds, "agents": agents, "slots": n_envs, "n_steps": n_steps, "batch_size": batch_size,
+        "n_epochs": n_epochs, "generations": generations, "torch_threads": th.get_num_threads(),
+        "network": repr(policy_kwargs), "learners": {},
+    }
+    slot_steps = n_steps * n_envs
+    ref_active = next((int(np.median(v)) for v in active.values() if v and v[0] >= 0), -1)
+    for name in models:
+        wall = float(np.median(walls[name]))
+        rows = writers[name].rows
+        search = float(np.median([r.get("counterplay/search_wall_s", 0.0) for r in rows])) if rows else 0.0
+        collect = float(np.median(phases[name]["collect"]))
+        entry = {
+            "s_per_generation": wall,
+            "slot_steps_per_s": slot_steps / wall,
+            "active_transitions_per_s": ref_active / wall if ref_active > 0 else float("nan"),
+            "rollout_s": collect - search,
+            "search_s": search,
+            "train_s": float(np.median(phases[name]["train"])),
+        }
+        if name == "counterplay" and rows:
+            for key in ("searches", "admissible", "verified_teachers", "branch_share"):
+                entry[key] = float(np.mean([r.get(f"counterplay/{key}", 0.0) for r in rows]))
+        out["learners"][name] = entry
+    out["active_fraction"] = ref_active / slot_steps if ref_active > 0 else float("nan")
+    if "stock" in models:
+        base = out["learners"]["stock"]["s_per_generation"]
+        out["speedup_vs_stock"] = {n: base / e["s_per_generation"] for n, e in out["learners"].items()}
+    if "fused" in models and "counterplay" in models:
+        out["counterplay_wall_over_fused"] = (out["learners"]["counterplay"]["s_per_generation"]
+                                              / out["learners"]["fused"]["s_per_generation"])
+    if "ppo" in models and "counterplay" in models:
+        out["counterplay_wall_over_ppo"] = (out["learners"]["counterplay"]["s_per_generation"]
+                                            / out["learners"]["ppo"]["s_per_generation"])
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m cpalgo.bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--worlds", type=int, default=16)
+    parser.add_argument("--agents", type=int, default=8)
+    parser.add_argument("--n-steps", type=int, default=64)
+    parser.add_argument("--batch-size", type=int, default=4096)
+    parser.add_argument("--epochs", type=int, default=3)
+    parser.add_argument("--generations", type=int, default=3)
+    parser.add_argument("--anchor", default=None, help="checkpoint whose network/weights to use (default: shipped anchor)")
+    parser.add_argument("--learners", default=",".join(LEARNERS), help=f"comma-separated subset of {','.join(LEARNERS)}")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None, help="also write the JSON summary here")
+    args = parser.parse_args(argv)
+    for name in ("worlds", "agents", "n_steps", "batch_size", "epochs", "generations"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1")
+    learners = tuple(x.strip() for x in args.learners.split(",") if x.strip())
+    try:
+        result = run_learn_benchmark(args.worlds, args.agents, args.n_steps, args.generations, args.batch_size,
+                                     args.epochs, args.anchor, learners, args.seed, args.threads)
+    except ValueError as exc:
+        parser.error(str(exc))
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out:
+        from cpsim.atomic import atomic_path
+
+        with atomic_path(args.out) as tmp, open(tmp, "w") as fh:
+            fh.write(text)
+
+
+if __name__ == "__main__":
+    main()
