@@ -16,7 +16,8 @@ from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.policies import ActorCriticPolicy
 
-__all__ = ["policy_step_logits", "actor_logits", "critic_values", "inverse_cdf_sample", "zero_states"]
+__all__ = ["policy_step_logits", "actor_logits", "critic_values", "inverse_cdf_sample", "zero_states",
+           "take_states", "put_states"]
 
 LSTMState = tuple[th.Tensor, th.Tensor]
 
@@ -111,3 +112,20 @@ def zero_states(policy: RecurrentActorCriticPolicy, n: int, device: th.device | 
     shape = (lstm.num_layers, n, lstm.hidden_size)
     z = lambda: th.zeros(shape, device=device)  # noqa: E731
     return RNNStates((z(), z()), (z(), z()))
+
+
+def take_states(states: RNNStates, idx: th.Tensor) -> RNNStates:
+    """The columns ``idx`` of actor and critic (h, c), each (layers, N, hidden)."""
+    return RNNStates((states.pi[0][:, idx], states.pi[1][:, idx]), (states.vf[0][:, idx], states.vf[1][:, idx]))
+
+
+def put_states(states: RNNStates, idx: th.Tensor, part: RNNStates) -> RNNStates:
+    """``states`` with the columns ``idx`` replaced by ``part`` (inactive slots keep their
+    memory; they restart with an episode start when they come back)."""
+    def put(full: th.Tensor, sub: th.Tensor) -> th.Tensor:
+        out = full.clone()
+        out[:, idx] = sub
+        return out
+
+    return RNNStates((put(states.pi[0], part.pi[0]), put(states.pi[1], part.pi[1])),
+                     (put(states.vf[0], part.vf[0]), put(states.vf[1], part.vf[1])))

@@ -52,14 +52,8 @@ from cpalgo.common.buffers import MaskedRecurrentDictRolloutBuffer, MaskedRecurr
 from cpalgo.common.progress import LearnProgressBar
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, collate_teachers, distill_loss
-from cpalgo.counterplay.driver import (
-    FAILURE_OUTCOMES,
-    SearchDriver,
-    SearchSettings,
-    SearchStats,
-    put_states,
-    take_states,
-)
+from cpalgo.common.policy_utils import put_states, take_states
+from cpalgo.counterplay.driver import FAILURE_OUTCOMES, SearchDriver, SearchSettings, SearchStats
 from cpalgo.counterplay.records import check_keep_searches, keep_wave
 from cpalgo.counterplay.search import BACKTRACK_MODES, SELECTION_MODES
 from cpalgo.policies import POLICY_ALIASES

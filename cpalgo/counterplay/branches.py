@@ -23,7 +23,7 @@ import torch as th
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from sb3_contrib.common.recurrent.type_aliases import RNNStates
 
-from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits
+from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits, put_states, take_states
 from cpalgo.counterplay.search import BranchOutcome
 
 __all__ = ["BranchJob", "BranchResult", "BranchRunner"]
@@ -192,23 +192,38 @@ class BranchRunner:
         f_actions = th.zeros(n_used, t_max, dtype=th.long, device=device)
         f_rewards = th.zeros(n_used, t_max, device=device)
         f_alive = th.zeros(n_used, t_max, dtype=th.bool, device=device)
-        all_actions = np.full((n_used, t_max, a), -1, np.int64)
-        xy = np.zeros((n_used, t_max + 1, a, 2), np.float32)
-        transitions = np.zeros(n_used, np.int64)
-        running = np.ones(n_used, bool)
+        # everything per step stays on the policy's device; the host reads it once at the end
+        all_actions = th.full((n_used, t_max, a), -1, dtype=th.long, device=device)
+        xy = th.zeros((n_used, t_max + 1, a, 2), device=device)
+        transitions = th.zeros(n_used, dtype=th.long, device=device)
+        steps_left_t = th.as_tensor(steps_left, device=device)
+        running = th.ones(n_used, dtype=th.bool, device=device)
+        # on a CPU the network only runs the agents that decide; on a GPU the full batch is
+        # cheaper than the host sync an index would cost
+        subset = device.type == "cpu"
 
         for t in range(t_max):
-            world_done = sim.world_done.detach().cpu().numpy()[:n_used].astype(bool)
-            running &= ~world_done & (t < steps_left)
-            xy[:, t] = sim.xy.detach().cpu().numpy()[:n_used]
-            if not running.any():
+            world_done = sim.world_done.to(device)[:n_used].bool()
+            running &= ~world_done & (t < steps_left_t)
+            xy[:, t] = sim.xy.to(device)[:n_used]
+            if not bool(running.any()):  # the one host sync per step
                 break
-            deciding = sim.policy_mask.to(device)  # (n_worlds, A) bool
+            deciding = sim.policy_mask.to(device).bool()  # (n_worlds, A)
+            deciding[:n_used] &= running[:, None]
+            deciding[n_used:] = False
             obs = sim.obs.to(device).float() * deciding[..., None]
             flat = obs.reshape(n_worlds * a, d)
             if self.obs_transform is not None:
                 flat = self.obs_transform(flat)
-            logits, _, states = policy_step_logits(self.policy, flat, states, starts)
+            if subset:
+                rows = deciding.reshape(-1).nonzero().squeeze(-1)
+                sub_logits, _, sub_states = policy_step_logits(self.policy, flat[rows], take_states(states, rows),
+                                                               starts[rows])
+                logits = th.zeros(n_worlds * a, sub_logits.shape[-1], device=device)
+                logits[rows] = sub_logits
+                states = put_states(states, rows, sub_states)
+            else:
+                logits, _, states = policy_step_logits(self.policy, flat, states, starts)
             if n_actions is None:
                 n_actions = int(logits.shape[-1])
                 if record:
@@ -227,11 +242,10 @@ class BranchRunner:
                 u = th.cat([u, th.zeros(n_worlds - n_used, a, device=device)])
             actions = inverse_cdf_sample(logits, u.reshape(-1)).reshape(n_worlds, a)
 
-            deciding_used = deciding[:n_used].cpu().numpy() & running[:, None]
+            deciding_used = deciding[:n_used]
             transitions += deciding_used.sum(1)
-            act_np = actions[:n_used].cpu().numpy()
-            all_actions[:, t] = np.where(deciding_used, act_np, -1)
-            f_dec = deciding[rows_u, focal_t[:n_used]] & th.as_tensor(running, device=device)
+            all_actions[:, t] = th.where(deciding_used, actions[:n_used], -1)
+            f_dec = deciding_used[rows_u, focal_t[:n_used]]
             f_alive[:, t] = f_dec
             f_actions[:, t] = actions[rows_u, focal_t[:n_used]]
             if record:
@@ -241,7 +255,10 @@ class BranchRunner:
             sim.step(actions)
             f_rewards[:, t] = sim.reward.to(device)[rows_u, focal_t[:n_used]].float() * f_dec
         else:
-            xy[:, t_max] = sim.xy.detach().cpu().numpy()[:n_used]
+            xy[:, t_max] = sim.xy.to(device)[:n_used]
+        all_actions = all_actions.cpu().numpy()
+        xy = xy.cpu().numpy()
+        transitions = transitions.cpu().numpy().astype(np.int64)
 
         # --- outcomes
         outcome = sim.outcome.detach().cpu().numpy()[:n_used]

@@ -19,8 +19,8 @@ Timeline (the seed paper's integration; DESIGN.md, "CounterPlay"):
 from __future__ import annotations
 
 import time
-from copy import deepcopy
 from collections import Counter
+from copy import deepcopy
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -28,7 +28,7 @@ import numpy as np
 import torch as th
 from sb3_contrib.common.recurrent.type_aliases import RNNStates
 
-from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits
+from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits, put_states, take_states
 from cpalgo.counterplay.branches import BranchJob, BranchResult, BranchRunner
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import Teacher
@@ -482,23 +482,6 @@ class SearchDriver:
 
 
 # ---------------------------------------------------------------------- helpers
-def take_states(states: RNNStates, idx: th.Tensor) -> RNNStates:
-    """The columns ``idx`` of actor and critic (h, c), each (layers, N, hidden)."""
-    return RNNStates((states.pi[0][:, idx], states.pi[1][:, idx]), (states.vf[0][:, idx], states.vf[1][:, idx]))
-
-
-def put_states(states: RNNStates, idx: th.Tensor, part: RNNStates) -> RNNStates:
-    """``states`` with the columns ``idx`` replaced by ``part`` (inactive slots keep their
-    memory; they restart with an episode start when they come back)."""
-    def put(full: th.Tensor, sub: th.Tensor) -> th.Tensor:
-        out = full.clone()
-        out[:, idx] = sub
-        return out
-
-    return RNNStates((put(states.pi[0], part.pi[0]), put(states.pi[1], part.pi[1])),
-                     (put(states.vf[0], part.vf[0]), put(states.vf[1], part.vf[1])))
-
-
 def _branch_simulator_factory(source: Simulator) -> Callable[[int], Simulator]:
     """``num_worlds -> Simulator`` sharing the main simulator's static Model (no second
     road grid or pool build)."""
