@@ -55,9 +55,8 @@ from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, col
 from cpalgo.common.policy_utils import put_states, take_states
 from cpalgo.counterplay.driver import FAILURE_OUTCOMES, SearchDriver, SearchSettings, SearchStats
 from cpalgo.counterplay.records import check_keep_searches, keep_wave
-from cpalgo.counterplay.search import BACKTRACK_MODES, SELECTION_MODES
 from cpalgo.policies import POLICY_ALIASES
-from cpsim.conditions import PANEL, PROFILE_ALIASES, PROFILES, STYLE_MASK, resolve_condition
+from cpsim.conditions import PANEL, STYLE_MASK, resolve_condition
 
 if TYPE_CHECKING:
     from cpalgo.counterplay.branches import BranchResult
@@ -122,27 +121,10 @@ class CounterPlay(RecurrentPPO):
         self,
         policy: str | type[RecurrentActorCriticPolicy],
         env: GymEnv | str,
-        learning_rate: float | Schedule = 3e-4,
         n_steps: int = 64,
         batch_size: int | None = 4096,
         n_epochs: int = 3,
-        gamma: float = 0.99,
-        gae_lambda: float = 0.95,
-        clip_range: float | Schedule = 0.2,
-        clip_range_vf: float | Schedule | None = None,
-        normalize_advantage: bool = True,
-        ent_coef: float = 0.0,
-        vf_coef: float = 0.5,
-        max_grad_norm: float = 0.5,
-        use_sde: bool = False,
-        sde_sample_freq: int = -1,
-        target_kl: float | None = None,
-        stats_window_size: int = 100,
-        tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
-        verbose: int = 0,
-        seed: int | None = None,
-        device: th.device | str = "auto",
         counterfactual: bool = True,
         root_interval: int = 5,
         window: Sequence[int] = (5, 60),
@@ -164,32 +146,12 @@ class CounterPlay(RecurrentPPO):
         max_searches: int | None = None,
         keep_searches: int = 4,
         _init_setup_model: bool = True,
+        **ppo_kwargs: Any,
     ):
         super().__init__(
-            policy,
-            env,
-            learning_rate=learning_rate,
-            n_steps=n_steps,
-            batch_size=batch_size,
-            n_epochs=n_epochs,
-            gamma=gamma,
-            gae_lambda=gae_lambda,
-            clip_range=clip_range,
-            clip_range_vf=clip_range_vf,
-            normalize_advantage=normalize_advantage,
-            ent_coef=ent_coef,
-            vf_coef=vf_coef,
-            max_grad_norm=max_grad_norm,
-            use_sde=use_sde,
-            sde_sample_freq=sde_sample_freq,
-            target_kl=target_kl,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
+            policy, env, n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs,
             policy_kwargs=deepcopy(ANCHOR_NETWORK) if policy_kwargs is None else policy_kwargs,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            _init_setup_model=False,
+            _init_setup_model=False, **ppo_kwargs,
         )
         self.counterfactual = bool(counterfactual)
         self.root_interval = root_interval
@@ -230,28 +192,8 @@ class CounterPlay(RecurrentPPO):
             self.window = tuple(self.window)
         if isinstance(self.deploy_condition, (list, tuple)):
             self.deploy_condition = tuple(float(x) for x in self.deploy_condition)
-        panel = self.panel
-        if len(panel) == 0:
-            raise ValueError("panel: needs at least one profile")
-        for name in panel:
-            if PROFILE_ALIASES.get(name, name) not in PROFILES:
-                raise ValueError(f"panel: unknown profile {name!r}; accepted: {sorted(PROFILES)}")
+        self._search_settings()  # validates the search arguments
         self._deploy_raw = resolve_condition(self.deploy_condition, "deploy_condition")
-        if isinstance(self.window, str) or len(self.window) != 2:
-            raise ValueError(f"window: expected (start, end), got {self.window!r}")
-        start, end = int(self.window[0]), int(self.window[1])
-        if start < 1 or start >= end:
-            raise ValueError(f"window: need 1 <= start < end, got {self.window!r}")
-        if not 0.0 <= float(self.rho) <= 1.0:
-            raise ValueError(f"rho: must lie in [0, 1], got {self.rho!r}")
-        if int(self.root_interval) < 1:
-            raise ValueError(f"root_interval: must be >= 1, got {self.root_interval!r}")
-        if self.backtrack not in BACKTRACK_MODES:
-            raise ValueError(f"backtrack: expected one of {BACKTRACK_MODES}, got {self.backtrack!r}")
-        if int(self.fixed_depth) < 1:
-            raise ValueError(f"fixed_depth: must be >= 1, got {self.fixed_depth!r}")
-        if self.selection not in SELECTION_MODES:
-            raise ValueError(f"selection: expected one of {SELECTION_MODES}, got {self.selection!r}")
         if self.distill not in DISTILL_MODES:
             raise ValueError(f"distill: expected one of {DISTILL_MODES}, got {self.distill!r}")
         if not float(self.distill_coef) >= 0.0:
@@ -262,12 +204,12 @@ class CounterPlay(RecurrentPPO):
             raise ValueError(f"branch_cap: must be > 0, got {self.branch_cap!r}")
         if self.post_budget is not None and not float(self.post_budget) > 0:
             raise ValueError(f"post_budget: must be > 0 or None, got {self.post_budget!r}")
-        if self.max_searches is not None and int(self.max_searches) < 0:
-            raise ValueError(f"max_searches: must be >= 0 or None, got {self.max_searches!r}")
 
     def _search_settings(self) -> SearchSettings:
+        window = self.window if isinstance(self.window, str) or len(self.window) != 2 else \
+            (int(self.window[0]), int(self.window[1]))
         return SearchSettings(
-            root_interval=int(self.root_interval), window=(int(self.window[0]), int(self.window[1])),
+            root_interval=int(self.root_interval), window=window,
             rho=float(self.rho), backtrack=self.backtrack, fixed_depth=int(self.fixed_depth), panel=tuple(self.panel),
             shared_randomness=self.shared_randomness, style_change=self.style_change, selection=self.selection,
             verify=self.verify, max_searches=None if self.max_searches is None else int(self.max_searches),
@@ -309,71 +251,24 @@ class CounterPlay(RecurrentPPO):
 
     # ================================================================== model setup
     def _setup_model(self) -> None:
-        """RecurrentPPO's setup with the masked rollout buffer (same RNG use as the parent)."""
+        """RecurrentPPO's setup, then its rollout buffer swapped for the masked one (built
+        from the same arguments; neither consumes random numbers, so the RNG stream is the
+        parent's)."""
         self._validate_settings()
         self.budget.branch_cap = float(self.branch_cap)
         self.budget.post_budget = self.post_budget
-        self._setup_lr_schedule()
-        self.set_random_seed(self.seed)
-
+        super()._setup_model()
+        parent = self.rollout_buffer
         buffer_cls = (
-            MaskedRecurrentDictRolloutBuffer
-            if isinstance(self.observation_space, spaces.Dict)
+            MaskedRecurrentDictRolloutBuffer if isinstance(self.observation_space, spaces.Dict)
             else MaskedRecurrentRolloutBuffer
         )
-
-        self.policy = self.policy_class(
-            self.observation_space,
-            self.action_space,
-            self.lr_schedule,
-            use_sde=self.use_sde,
-            **self.policy_kwargs,
-        )
-        self.policy = self.policy.to(self.device)
-
-        # We assume that LSTM for the actor and the critic
-        # have the same architecture
-        lstm = self.policy.lstm_actor
-
-        if not isinstance(self.policy, RecurrentActorCriticPolicy):
-            raise ValueError("Policy must subclass RecurrentActorCriticPolicy")
-
-        single_hidden_state_shape = (lstm.num_layers, self.n_envs, lstm.hidden_size)
-        # hidden and cell states for actor and critic
-        self._last_lstm_states = RNNStates(
-            (
-                th.zeros(single_hidden_state_shape, device=self.device),
-                th.zeros(single_hidden_state_shape, device=self.device),
-            ),
-            (
-                th.zeros(single_hidden_state_shape, device=self.device),
-                th.zeros(single_hidden_state_shape, device=self.device),
-            ),
-        )
-
-        hidden_state_buffer_shape = (self.n_steps, lstm.num_layers, self.n_envs, lstm.hidden_size)
-
         self.rollout_buffer = buffer_cls(
-            self.n_steps,
-            self.observation_space,
-            self.action_space,
-            hidden_state_buffer_shape,
-            self.device,
-            gamma=self.gamma,
-            gae_lambda=self.gae_lambda,
-            n_envs=self.n_envs,
+            self.n_steps, self.observation_space, self.action_space, parent.hidden_state_shape, self.device,
+            gamma=self.gamma, gae_lambda=self.gae_lambda, n_envs=self.n_envs,
         )
         # inactive slots cost no forward/backward pass in train (see cpalgo.common.buffers)
         self.rollout_buffer.active_only = self.mask_inactive
-
-        # Initialize schedules for policy/value clipping
-        self.clip_range = FloatSchedule(self.clip_range)
-        if self.clip_range_vf is not None:
-            if isinstance(self.clip_range_vf, (float, int)):
-                assert self.clip_range_vf > 0, "`clip_range_vf` must be positive, pass `None` to deactivate vf clipping"
-
-            self.clip_range_vf = FloatSchedule(self.clip_range_vf)
-
         self._reset_runtime()
         self._check_branching_env(self.env)
 
@@ -686,31 +581,11 @@ class CounterPlay(RecurrentPPO):
     def _log_generation(self, summary: dict[str, int]) -> None:
         if not self.counterfactual:
             return
-        s = self.search_stats
-        record = self.logger.record
-        record("counterplay/failures", s.failures)
-        for name in ("collision", "offroad", "timeout"):
-            record(f"counterplay/failures_{name}", s.failures_by_outcome[name])
-        record("counterplay/failures_without_root", s.failures_without_root)
-        record("counterplay/searches", s.searches)
-        record("counterplay/searches_skipped", s.searches_skipped)
-        record("counterplay/search_waves", s.search_waves)
-        record("counterplay/root_depth_mean", s.root_depth_mean)
-        for depth in sorted(s.root_depths):
-            record(f"counterplay/roots_by_depth/{depth}", s.root_depths[depth])
-        record("counterplay/admissible", s.admissible)
-        record("counterplay/teachers_chosen", s.teachers_chosen)
-        record("counterplay/verified_teachers", s.teachers)
-        chosen = s.teachers_chosen
-        record("counterplay/verification_pass_rate", (s.verified / chosen) if (self.verify and chosen) else float("nan"))
-        for name in self.panel:
-            record(f"counterplay/profile/{name}", s.profiles[name])
+        self.search_stats.record(self.logger.record, self.panel, self.verify)
         gen_total = summary["main"] + summary["branch"]
-        record("counterplay/search_cpu_s", s.search_cpu_s)
-        record("counterplay/search_wall_s", s.search_wall_s)
-        record("counterplay/branch_share", summary["branch"] / gen_total if gen_total else 0.0)
+        self.logger.record("counterplay/branch_share", summary["branch"] / gen_total if gen_total else 0.0)
         for key in ("main", "factual", "candidate", "verification", "total"):
-            record(f"counterplay/budget_{key}", getattr(self.budget, key))
+            self.logger.record(f"counterplay/budget_{key}", getattr(self.budget, key))
 
     # ================================================================== train
     def _distill_schedule(self, total_updates: int) -> set[int]:

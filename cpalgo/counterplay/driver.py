@@ -33,8 +33,8 @@ from cpalgo.counterplay.branches import BranchJob, BranchResult, BranchRunner
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import Teacher
 from cpalgo.counterplay.roots import RootStore, SearchRequest
-from cpalgo.counterplay.search import admit, choose_teacher, select_root, verify
-from cpsim.conditions import PROFILE_ALIASES, PROFILES, STYLE_MASK
+from cpalgo.counterplay.search import BACKTRACK_MODES, SELECTION_MODES, admit, choose_teacher, select_root, verify
+from cpsim.conditions import PANEL, PROFILE_ALIASES, PROFILES, STYLE_MASK
 from cpsim.config import Outcome
 
 if TYPE_CHECKING:
@@ -70,20 +70,47 @@ def _to_numpy(x: Any) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SearchSettings:
-    """The CounterPlay arguments the search needs (validated by ``CounterPlay``)."""
+    """The CounterPlay arguments the search needs; ``ValueError`` names a bad one.
 
-    root_interval: int
-    window: tuple[int, int]
-    rho: float
-    backtrack: str
-    fixed_depth: int
-    panel: tuple[str, ...]
-    shared_randomness: bool
-    style_change: bool
-    selection: str
-    verify: bool
-    max_searches: int | None
-    seed: int
+    See :class:`cpalgo.counterplay.algorithm.CounterPlay` for their meaning.
+    """
+
+    root_interval: int = 5
+    window: tuple[int, int] = (5, 60)
+    rho: float = 0.5
+    backtrack: str = "value"
+    fixed_depth: int = 20
+    panel: tuple[str, ...] = PANEL
+    shared_randomness: bool = True
+    style_change: bool = True
+    selection: str = "rank"
+    verify: bool = True
+    max_searches: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if len(self.panel) == 0:
+            raise ValueError("panel: needs at least one profile")
+        for name in self.panel:
+            if PROFILE_ALIASES.get(name, name) not in PROFILES:
+                raise ValueError(f"panel: unknown profile {name!r}; accepted: {sorted(PROFILES)}")
+        if isinstance(self.window, str) or len(self.window) != 2:
+            raise ValueError(f"window: expected (start, end), got {self.window!r}")
+        start, end = int(self.window[0]), int(self.window[1])
+        if start < 1 or start >= end:
+            raise ValueError(f"window: need 1 <= start < end, got {self.window!r}")
+        if not 0.0 <= float(self.rho) <= 1.0:
+            raise ValueError(f"rho: must lie in [0, 1], got {self.rho!r}")
+        if int(self.root_interval) < 1:
+            raise ValueError(f"root_interval: must be >= 1, got {self.root_interval!r}")
+        if self.backtrack not in BACKTRACK_MODES:
+            raise ValueError(f"backtrack: expected one of {BACKTRACK_MODES}, got {self.backtrack!r}")
+        if int(self.fixed_depth) < 1:
+            raise ValueError(f"fixed_depth: must be >= 1, got {self.fixed_depth!r}")
+        if self.selection not in SELECTION_MODES:
+            raise ValueError(f"selection: expected one of {SELECTION_MODES}, got {self.selection!r}")
+        if self.max_searches is not None and int(self.max_searches) < 0:
+            raise ValueError(f"max_searches: must be >= 0 or None, got {self.max_searches!r}")
 
 
 @dataclass
@@ -117,6 +144,22 @@ class SearchStats:
     def root_depth_mean(self) -> float:
         n = sum(self.root_depths.values())
         return sum(d * k for d, k in self.root_depths.items()) / n if n else 0.0
+
+    def record(self, record: Callable[[str, Any], None], panel: tuple[str, ...], verify: bool) -> None:
+        """Write this generation's counts through ``logger.record`` (``counterplay/...``)."""
+        record("counterplay/failures", self.failures)
+        for name in ("collision", "offroad", "timeout"):
+            record(f"counterplay/failures_{name}", self.failures_by_outcome[name])
+        for name in ("failures_without_root", "searches", "searches_skipped", "search_waves", "root_depth_mean",
+                     "admissible", "teachers_chosen", "search_cpu_s", "search_wall_s"):
+            record(f"counterplay/{name}", getattr(self, name))
+        for depth in sorted(self.root_depths):
+            record(f"counterplay/roots_by_depth/{depth}", self.root_depths[depth])
+        record("counterplay/verified_teachers", self.teachers)
+        chosen = self.teachers_chosen
+        record("counterplay/verification_pass_rate", (self.verified / chosen) if (verify and chosen) else float("nan"))
+        for name in panel:
+            record(f"counterplay/profile/{name}", self.profiles[name])
 
     def add(self, other: SearchStats) -> None:
         """Accumulate ``other`` into this one."""
