@@ -3,6 +3,11 @@
 Every controllable agent of every task is driven by the same policy under one fixed
 condition (default: the normal profile), every other agent follows its log, one episode
 per task, all tasks batched as worlds of one :class:`cpsim.Simulator`.
+
+The goal test is the evaluation criterion (:data:`cpsim.config.EVAL_GOAL`, 2 m and no
+effective speed limit) whatever the condition: the condition supplies the style fields
+only (:func:`cpsim.conditions.deployment_condition`), so rates under different profiles
+measure the same task.
 """
 
 from __future__ import annotations
@@ -13,12 +18,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition
-from cpsim.config import Controller, Outcome
+from cpsim.conditions import NUM_CONDITION_FIELDS, deployment_condition
+from cpsim.config import Controller, Outcome, SimConfig
 from cpsim.scenario import Scenario
 from cpsim.simulator import Simulator
-
-OUTCOME_KEYS = ("goal", "collision", "offroad", "timeout")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,11 +51,13 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
     Args:
         model: an SB3 model (recurrent or not) trained on ``SelfPlayVecEnv`` observations.
         scenarios: the held-out tasks (one world each).
-        condition: profile name or raw 10-vector given to every policy agent.
+        condition: profile name or raw 10-vector whose style fields every policy agent
+            gets; the task fields and the goal test are the evaluation criterion's.
         max_agents: agent slots per world (must match the model's training only in that
             the observation layout is the same; slot count is free).
         deterministic: argmax actions.
-        config: SimConfig (or dict) of the simulator; default SimConfig().
+        config: SimConfig (or dict) of the simulator; default SimConfig(). Its
+            ``goal_criterion`` is set to "evaluation".
         chunk: worlds per simulator batch.
     """
     def drive(sim: Simulator) -> None:
@@ -101,7 +106,8 @@ def _episode_outcomes(drive: Callable[[Simulator], None], scenarios: Sequence[Sc
     scenarios = list(scenarios)
     if not scenarios:
         raise ValueError("scenarios: empty")
-    cond = resolve_condition(condition, "condition")
+    cond = deployment_condition(condition, "condition")
+    config = SimConfig.from_dict(config).replace(goal_criterion="evaluation")
     counts = np.zeros(len(Outcome), np.int64)
     for start in range(0, len(scenarios), chunk):
         part = scenarios[start:start + chunk]

@@ -12,7 +12,12 @@ What it adds to rl-zoo3 before handing over to its own ``train`` / ``enjoy`` ent
   files ``n_envs`` counts agent slots, not processes.
 
 ``-f file.yml`` is read as ``--conf-file file.yml`` (rl-zoo3's own ``-f`` is the log folder,
-which stays available as ``--log-folder``). Example::
+which stays available as ``--log-folder``). ``zoo/NAME`` after ``-f`` / ``--conf-file`` /
+``-i`` / ``--trained-agent`` names the shipped file when no such file exists
+(:func:`cpalgo.recipes.resolve_path`). On the self-play env, ``normalize`` uses
+:class:`cpsim.envs.selfplay.SelfPlayVecNormalize` (statistics of active slots only), and
+``enjoy`` prints the agents' episode outcomes (rl-zoo3 prints nothing for ``n_envs > 1``).
+Example::
 
     python -m cpalgo.zoo train --algo counterplay --env cpsim/SelfPlay-v0 \\
         -f zoo/counterplay.yml -i zoo/anchor.zip -n 20000
@@ -34,10 +39,6 @@ from gymnasium import spaces
 
 from cpalgo.recipes import SELFPLAY_ENV_ID
 
-SELFPLAY_KEYS = ("max_agents", "family", "womd_dir", "num_scenarios", "dynamics", "condition",
-                 "device", "render_mode")
-
-
 class SelfPlaySettings(gymnasium.Env):
     """Carrier of the self-play settings for rl-zoo3 (``gymnasium.make("cpsim/SelfPlay-v0", **kw)``).
 
@@ -46,7 +47,7 @@ class SelfPlaySettings(gymnasium.Env):
     needs every agent slot of a world at once.
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
+    metadata = {"render_modes": ["rgb_array", "human"]}
 
     def __init__(self, max_agents: int = 8, family: str | None = None, womd_dir: str | None = None,
                  num_scenarios: int | None = None, dynamics: str = "jerk", condition: Any = "train",
@@ -55,9 +56,6 @@ class SelfPlaySettings(gymnasium.Env):
         from cpsim.envs.selfplay import OBS_BOUND
         from cpsim.observation import ObsLayout
 
-        if render_mode == "human":
-            raise ValueError("render_mode: 'human' is not supported by cpsim/SelfPlay-v0; "
-                             "pass --no-render to rl-zoo3's enjoy (or use render_mode='rgb_array')")
         config = SimConfig.from_dict({"dynamics": dynamics, **config_overrides})
         layout = ObsLayout(num_partners=config.num_partners, num_road=config.num_road)
         self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (layout.size,), np.float32)
@@ -89,9 +87,53 @@ def _settings_of(env: gymnasium.Env) -> dict[str, Any]:
     return dict(inner.selfplay_kwargs)
 
 
-def make_zoo_vec_env_class() -> type:
+class EpisodeReport:
+    """Counts the agents' episode outcomes and returns of a self-play run and prints them:
+    one line per ``every`` finished agent episodes, and a total at :meth:`close`."""
+
+    def __init__(self, num_envs: int, every: int, out: Any = None):
+        self.every = max(1, int(every))
+        self.out = out
+        self.returns = np.zeros(num_envs)
+        self.lengths = np.zeros(num_envs, np.int64)
+        self.outcomes: dict[str, int] = {}
+        self.episode_returns: list[float] = []
+        self.episode_lengths: list[int] = []
+        self._printed = 0
+
+    def update(self, rewards: np.ndarray, dones: np.ndarray, infos: Sequence[dict]) -> None:
+        self.returns += rewards
+        self.lengths += 1
+        for i in np.flatnonzero(dones):
+            outcome = infos[i].get("outcome")
+            if outcome is not None:  # an agent's episode (not an empty slot's)
+                self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
+                self.episode_returns.append(float(self.returns[i]))
+                self.episode_lengths.append(int(self.lengths[i]))
+            self.returns[i] = 0.0
+            self.lengths[i] = 0
+        if len(self.episode_returns) - self._printed >= self.every:
+            self.print()
+
+    def line(self) -> str:
+        n = len(self.episode_returns)
+        if not n:
+            return "0 agent episodes finished"
+        rates = "  ".join(f"{k} {self.outcomes.get(k, 0) / n:.1%}" for k in ("goal", "collision", "offroad", "timeout"))
+        return (f"{n} agent episodes: {rates}  mean reward {np.mean(self.episode_returns):.2f} "
+                f"+/- {np.std(self.episode_returns):.2f}  mean length {np.mean(self.episode_lengths):.1f}")
+
+    def print(self) -> None:
+        self._printed = len(self.episode_returns)
+        print(self.line(), file=self.out or sys.stdout, flush=True)
+
+
+def make_zoo_vec_env_class(report: bool = False) -> type:
     """The VecEnv class rl-zoo3 instantiates with its ``env_fns`` (built lazily: it
-    subclasses :class:`cpsim.SelfPlayVecEnv`, whose import loads the simulator)."""
+    subclasses :class:`cpsim.SelfPlayVecEnv`, whose import loads the simulator).
+
+    ``report``: print the agents' episode outcomes (:class:`EpisodeReport`; for ``enjoy``).
+    """
     from cpsim.envs.selfplay import SelfPlayVecEnv
 
     class ZooSelfPlayVecEnv(SelfPlayVecEnv):
@@ -107,6 +149,19 @@ def make_zoo_vec_env_class() -> type:
             max_agents = int(settings.pop("max_agents"))
             worlds = max(1, math.ceil(len(env_fns) / max_agents))
             super().__init__(num_worlds=worlds, max_agents=max_agents, **settings)
+            self.report = EpisodeReport(self.num_envs, every=self.num_envs) if report else None
+
+        def step_wait(self) -> Any:
+            obs, rewards, dones, infos = super().step_wait()
+            if self.report is not None:
+                self.report.update(rewards, dones, infos)
+            return obs, rewards, dones, infos
+
+        def close(self) -> None:
+            if self.report is not None:
+                self.report.print()
+                self.report = None
+            super().close()
 
     return ZooSelfPlayVecEnv
 
@@ -126,6 +181,10 @@ def register() -> None:
         algos = getattr(module, "ALGOS", None)
         if algos is not None:
             algos["counterplay"] = CounterPlay
+    # schedule settings (learning_rate: cosine(3e-5), ...) read as load_recipe reads them
+    from cpalgo.recipes import install_zoo_schedules
+
+    install_zoo_schedules()
 
 
 def _uses_selfplay(argv: Sequence[str]) -> bool:
@@ -140,11 +199,17 @@ def _uses_selfplay(argv: Sequence[str]) -> bool:
 
 def _translate_config_flag(args: list[str]) -> list[str]:
     """rl-zoo3's ``-f`` is the log folder; ``-f something.yml`` here means the hyperparameter
-    file (``--conf-file``), so the short form in our docs works as written."""
+    file (``--conf-file``), so the short form in our docs works as written. The files after
+    ``--conf-file`` and ``-i`` / ``--trained-agent`` go through
+    :func:`cpalgo.recipes.resolve_path` (``zoo/NAME``: the shipped file)."""
+    from cpalgo.recipes import resolve_path
+
     out = list(args)
     for i, a in enumerate(out[:-1]):
         if a in ("-f", "--log-folder") and out[i + 1].endswith((".yml", ".yaml")):
             out[i] = "--conf-file"
+        if out[i] in ("--conf-file", "-conf", "-i", "--trained-agent"):
+            out[i + 1] = resolve_path(out[i + 1])
     return out
 
 
@@ -169,7 +234,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rl_zoo3.exp_manager import ExperimentManager
 
     if _uses_selfplay(rest):
-        ExperimentManager.default_vec_env_cls = make_zoo_vec_env_class()
+        import rl_zoo3.exp_manager
+
+        from cpsim.envs.selfplay import SelfPlayVecNormalize
+
+        ExperimentManager.default_vec_env_cls = make_zoo_vec_env_class(report=command == "enjoy")
+        # normalize: statistics of active slots only (rl-zoo3 builds VecNormalize by this name;
+        # enjoy unpickles the class it was saved with)
+        rl_zoo3.exp_manager.VecNormalize = SelfPlayVecNormalize  # type: ignore[attr-defined]
         if command == "enjoy":
             rest = _enjoy_n_envs(rest)
     sys.argv = [f"rl_zoo3.{command}", *rest]

@@ -121,6 +121,29 @@ def normalize_condition(conditions: np.ndarray) -> np.ndarray:
     return 2.0 * (conditions - low) / span - 1.0
 
 
+def criterion_task_fields() -> np.ndarray:
+    """The task fields (goal_radius, goal_speed) a policy sees under the evaluation goal
+    criterion (:data:`cpsim.config.EVAL_GOAL`): its radius and speed clipped to p_train's
+    ranges, (2 m, 30 m/s). The simulator tests the goal with the criterion itself (2 m,
+    100 m/s); with jerk dynamics (speed <= 20 m/s) any goal speed >= 20 is no limit, so the
+    two agree."""
+    from cpsim.config import EVAL_GOAL
+
+    idx = [FIELD_INDEX[f] for f in TASK_FIELDS]
+    raw = np.array([EVAL_GOAL.radius, EVAL_GOAL.speed], np.float32)
+    return np.clip(raw, TRAIN_LOW[idx], TRAIN_HIGH[idx]).astype(np.float32)
+
+
+def deployment_condition(spec: str | Sequence[float] | np.ndarray, argument: str = "condition") -> np.ndarray:
+    """The raw (10,) condition of a deployed agent: the style fields of ``spec`` (a profile
+    name or a raw 10-vector) and the task fields of the evaluation goal criterion
+    (:func:`criterion_task_fields`). A deployment condition changes style fields only: the
+    goal test is the same whatever the profile (DESIGN.md, "Evaluation goal criterion")."""
+    cond = resolve_condition(spec, argument).copy()
+    cond[~STYLE_MASK] = criterion_task_fields()
+    return cond
+
+
 def resolve_condition(spec: str | Sequence[float] | np.ndarray, argument: str = "condition") -> np.ndarray:
     """Turn a profile name or an explicit 10-vector into a validated raw (10,) condition."""
     if isinstance(spec, str):

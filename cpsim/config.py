@@ -45,7 +45,29 @@ JERK_LONG = np.array([-15.0, -4.0, 0.0, 4.0], np.float32)  # m/s^3
 JERK_LAT = np.array([-4.0, 0.0, 4.0], np.float32)          # m/s^3
 #: Classic bicycle (GPUDrive / PufferDrive): index = accel_idx * 13 + steer_idx.
 CLASSIC_ACCEL = np.array([-4.0, -2.667, -1.333, 0.0, 1.333, 2.667, 4.0], np.float32)  # m/s^2
-CLASSIC_STEER = np.linspace(-1.0, 1.0, 13).astype(np.float32)                           # rad
+#: PufferDrive's steering table, rounded to three decimals (not exactly linspace(-1, 1, 13)).
+CLASSIC_STEER = np.array([-1.0, -0.833, -0.667, -0.5, -0.333, -0.167, 0.0,
+                          0.167, 0.333, 0.5, 0.667, 0.833, 1.0], np.float32)               # rad
+
+
+# ----------------------------------------------------------------------------- goal criterion
+@dataclasses.dataclass(frozen=True)
+class GoalCriterion:
+    """A fixed goal test: reached when |pos - goal| < ``radius`` and |speed| <= ``speed``."""
+
+    name: str
+    radius: float  # m
+    speed: float   # m/s
+
+
+#: BehaviorBench's evaluation goal test (DESIGN.md, "Evaluation goal criterion"): radius 2 m
+#: and goal speed 100 m/s, i.e. no effective speed limit. Every deployment condition is tested
+#: with it, so sweeping the condition changes the driving style and never the task.
+EVAL_GOAL = GoalCriterion("evaluation", radius=2.0, speed=100.0)
+#: Goal tests by name (``SimConfig.goal_criterion``): "condition" (None here) tests each agent
+#: with the goal_radius / goal_speed of its own reward condition (self-play training, where
+#: every agent keeps the task fields drawn from p_train); "evaluation" is :data:`EVAL_GOAL`.
+GOAL_CRITERIA: dict[str, GoalCriterion | None] = {"condition": None, "evaluation": EVAL_GOAL}
 
 
 def num_actions(dynamics: str) -> int:
@@ -76,26 +98,36 @@ class SimConfig:
             (their events are recorded, they are never removed by them).
         box_scale: scale of every box's length and width for collision and off-road
             geometry (1.0 = logged size; PufferDrive's tests use 0.7). Observations and
-            rendering keep the logged size.
+            rendering keep the logged size. The classic step's yaw rate divides by
+            ``box_scale`` x the logged length (PufferDrive shrinks the agents it controls to
+            0.7 at load and its bicycle divides by that length), so ``box_scale=0.7`` with
+            ``dynamics="classic"`` reproduces PufferDrive's trajectories on WOMD; the jerk
+            model's wheelbase stays 0.6 x the logged length.
         default_controller: controller of controllable agents at reset ("policy").
         other_controller: controller of the other agents at reset ("replay").
         grid_cell: side of the per-scenario uniform grid cells, m.
         lane_radius: lane queries look for the nearest lane centreline within this, m.
         align_deg: aligned when the heading error to the lane is below this, degrees.
         lane_width: nominal lane width, m (scale of ``center_bias``; two-lane test).
-        no_lane_offset: lateral offset recorded when no lane is within ``lane_radius``, m.
         collide_types: whether pedestrians and cyclists collide (vehicles always do).
         observe_all: compute observations for every alive agent. By default (False) only
             alive POLICY agents and task agents (controllable at reset: vehicles valid at t0
             with a goal >= 2 m away, whatever their controller) are observed; scenery
             (parked cars, pedestrians, agents without a task) observes zeros, which saves
             most of the observation cost on WOMD scenes.
+        goal_criterion: the goal test (:data:`GOAL_CRITERIA`): "condition" (default: each
+            agent's own goal_radius / goal_speed condition fields, as in training) or
+            "evaluation" (:data:`EVAL_GOAL`, 2 m and 100 m/s for every agent, whatever its
+            condition; the evaluator, ``selfplay_outcomes`` and a Drive env with a fixed
+            deployment condition use it).
         step_penalty: weight of the tiny per-step reward term (reward -= step_penalty).
         road_simplify_tol: road polylines are simplified to this chord tolerance, m.
         road_max_segment: ... and to segments no longer than this, m.
-        idm_accel, idm_brake, idm_headway, idm_min_gap, idm_lookahead: IDM parameters
-            (max accel m/s^2, comfortable braking m/s^2, time headway s, jam gap m,
-            leader search distance along the path m).
+        idm_v0, idm_accel, idm_brake, idm_headway, idm_min_gap, idm_lookahead: IDM parameters
+            (desired speed m/s, max accel m/s^2, comfortable braking m/s^2, time headway s,
+            jam gap m, leader search distance along the path m). Defaults are BehaviorBench's
+            (v0 15, a 1.0, b 3.0, T 1.5, s0 1). ``idm_v0 = 0`` uses each agent's largest
+            logged speed instead; agents whose log moves less than 1 m stay put either way.
     """
 
     dynamics: str = "jerk"
@@ -115,16 +147,17 @@ class SimConfig:
     lane_radius: float = 4.0
     align_deg: float = 15.0
     lane_width: float = 3.7
-    no_lane_offset: float = 10.0
     collide_types: bool = True
     observe_all: bool = False
+    goal_criterion: str = "condition"
     step_penalty: float = 1e-4
     road_simplify_tol: float = 0.05
     road_max_segment: float = 10.0
-    idm_accel: float = 2.0
+    idm_v0: float = 15.0
+    idm_accel: float = 1.0
     idm_brake: float = 3.0
     idm_headway: float = 1.5
-    idm_min_gap: float = 2.0
+    idm_min_gap: float = 1.0
     idm_lookahead: float = 40.0
 
     # ------------------------------------------------------------------ construction
@@ -174,14 +207,14 @@ class SimConfig:
         if self.num_road < 0 or self.num_road > 4096:
             raise bad("num_road", "must be in [0, 4096]")
         positive = ("dt", "partner_radius", "road_radius", "box_scale", "grid_cell", "lane_radius",
-                    "align_deg", "lane_width", "no_lane_offset", "road_max_segment", "idm_accel",
+                    "align_deg", "lane_width", "road_max_segment", "idm_accel",
                     "idm_brake", "idm_headway", "idm_lookahead")
         for name in positive:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) \
                     or not np.isfinite(v) or v <= 0:
                 raise bad(name, "must be a finite number > 0")
-        for name in ("step_penalty", "road_simplify_tol", "idm_min_gap"):
+        for name in ("step_penalty", "road_simplify_tol", "idm_min_gap", "idm_v0"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) \
                     or not np.isfinite(v) or v < 0:
@@ -190,6 +223,8 @@ class SimConfig:
             raise bad("box_scale", "must be in (0, 2]")
         if self.align_deg >= 180.0:
             raise bad("align_deg", "must be below 180")
+        if self.goal_criterion not in GOAL_CRITERIA:
+            raise bad("goal_criterion", f"must be one of {sorted(GOAL_CRITERIA)}")
         for name in ("collide_types", "observe_all"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise bad(name, "must be a bool")
@@ -203,4 +238,5 @@ class SimConfig:
 __all__ = [
     "SimConfig", "Controller", "Outcome", "EVENT_RULES", "DYNAMICS_MODELS", "CONTROLLER_NAMES",
     "JERK_LONG", "JERK_LAT", "CLASSIC_ACCEL", "CLASSIC_STEER", "num_actions",
+    "GoalCriterion", "EVAL_GOAL", "GOAL_CRITERIA",
 ]

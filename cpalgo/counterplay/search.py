@@ -202,6 +202,13 @@ def rank_branches(
     return np.array(sorted(range(len(keys)), key=lambda i: keys[i], reverse=True), dtype=np.int64)
 
 
+def _check_pair(factual: BranchOutcome, candidate: BranchOutcome, argument: str) -> None:
+    if factual.focal != candidate.focal:
+        raise ValueError(f"{argument}: focal slot {candidate.focal} differs from factual {factual.focal}")
+    if factual.first_collision_step.shape != candidate.first_collision_step.shape:
+        raise ValueError(f"{argument}: number of slots differs from the factual branch")
+
+
 def _no_new_or_earlier(factual_steps: np.ndarray, candidate_steps: np.ndarray, others: np.ndarray) -> bool:
     """Per vehicle: an event in the candidate needs the same event at the same or an earlier
     step in the factual branch."""
@@ -217,10 +224,7 @@ def admit(factual: BranchOutcome, candidate: BranchOutcome) -> bool:
     """Whether ``candidate`` may teach: it completes, outranks ``factual`` and causes no new
     or earlier collision / off-road for any other vehicle (per-vehicle test against the
     factual branch's first_collision_step / first_offroad_step)."""
-    if factual.focal != candidate.focal:
-        raise ValueError(f"candidate: focal slot {candidate.focal} differs from factual {factual.focal}")
-    if factual.first_collision_step.shape != candidate.first_collision_step.shape:
-        raise ValueError("candidate: number of slots differs from the factual branch")
+    _check_pair(factual, candidate, "candidate")
     if not candidate.completed:
         return False
     if not candidate.key > factual.key:
@@ -231,10 +235,22 @@ def admit(factual: BranchOutcome, candidate: BranchOutcome) -> bool:
 
 
 def verify(factual_rerun: BranchOutcome, candidate_rerun: BranchOutcome) -> bool:
-    """Verification of a chosen teacher: the rerun of the factual condition and of the
-    chosen condition from the same root, with fresh shared draws, must pass the same tests
-    as :func:`admit`. A ``False`` discards the whole search."""
-    return admit(factual_rerun, candidate_rerun)
+    """Verification of a chosen teacher (the seed paper's): restore the root and rerun the
+    factual and the chosen condition with fresh shared draws; the chosen condition's rerun
+    must complete the task without a collision or off-road event of the focal agent, and
+    pass the per-vehicle test against the new factual rerun (no other vehicle gets a new or
+    earlier collision / off-road). It need *not* outrank the factual rerun: a lucky factual
+    rerun that also completes does not fail verification. A ``False`` discards the whole
+    search."""
+    _check_pair(factual_rerun, candidate_rerun, "candidate_rerun")
+    c = candidate_rerun
+    if not c.completed:
+        return False
+    if c.first_collision_step[c.focal] >= 0 or c.first_offroad_step[c.focal] >= 0:
+        return False
+    others = c.others | factual_rerun.others
+    return _no_new_or_earlier(factual_rerun.first_collision_step, c.first_collision_step, others) and \
+        _no_new_or_earlier(factual_rerun.first_offroad_step, c.first_offroad_step, others)
 
 
 def choose_teacher(
@@ -242,16 +258,27 @@ def choose_teacher(
     candidates: Sequence[BranchOutcome],
     selection: str = "rank",
 ) -> int | None:
-    """Index of the best admissible candidate, or ``None`` when none is admissible.
+    """Index of the teacher among ``candidates``, or ``None`` when there is none.
 
-    ``selection="rank"``: best by :func:`rank_key` (ties: first in panel order).
-    ``selection="return"`` (ablation): highest ``focal_return`` among the admissible ones.
+    ``selection="rank"``: the best admissible candidate (:func:`admit`) by :func:`rank_key`
+    (ties: first in panel order); ``None`` when none is admissible.
+    ``selection="return"`` (the selection-by-reward ablation): the candidate with the
+    highest ``focal_return`` (its conditioned return under its own condition), with no
+    completion, ranking or safety filter before it (ties: first in panel order); ``None``
+    only when there is no candidate. Verification (:func:`verify`) still applies after
+    either selection.
     """
     if selection not in SELECTION_MODES:
         raise ValueError(f"selection: expected one of {SELECTION_MODES}, got {selection!r}")
+    if selection == "return":
+        for c in candidates:
+            _check_pair(factual, c, "candidate")
+        if not candidates:
+            return None
+        returns = [float(c.focal_return) for c in candidates]
+        returns = [-np.inf if np.isnan(r) else r for r in returns]  # a NaN return never wins
+        return max(range(len(candidates)), key=lambda i: (returns[i], -i))
     admissible = [i for i, c in enumerate(candidates) if admit(factual, c)]
     if not admissible:
         return None
-    if selection == "rank":
-        return max(admissible, key=lambda i: (candidates[i].key, -i))
-    return max(admissible, key=lambda i: (candidates[i].focal_return, -i))
+    return max(admissible, key=lambda i: (candidates[i].key, -i))

@@ -66,11 +66,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "idm selfplay bc replay aggressive normal cautious mix)")
     p.add_argument("--split", default="both", help="interactive, random or both")
     p.add_argument("--n", type=int, default=50, help="tasks per split")
-    p.add_argument("--pool", default="procedural", help="'procedural' (eval_pool) or a folder of WOMD JSON/.npz")
+    p.add_argument("--pool", default="procedural",
+                   help="'procedural' (eval_pool) or a folder of WOMD .json / .json.gz / .npz files "
+                        "(one task per tracks_to_predict vehicle)")
     p.add_argument("--pool-size", type=int, default=None, help="procedural pool size (default 4 n)")
     p.add_argument("--deploy", default="normal",
                    help="ego condition: profile (cautious, cautious-normal, normal, normal-aggressive/halfway, "
-                        "aggressive) or 10 comma-separated raw values")
+                        "aggressive) or 10 comma-separated raw values; it sets the style fields only, "
+                        "the goal test is the same for every condition (2 m, no speed limit)")
     p.add_argument("--traffic-policy", default=None,
                    help="co-player checkpoint for selfplay / aggressive / normal / cautious / mix "
                         "(default zoo/anchor.zip, the shipped self-play anchor)")

@@ -41,7 +41,8 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from cpalgo.evaluate import metrics as M
-from cpsim.conditions import resolve_condition
+from cpalgo.recipes import resolve_path, shipped_path
+from cpsim.conditions import deployment_condition
 
 #: BehaviorBench's eight traffic regimes, in the column order of the tables.
 REGIMES: tuple[str, ...] = ("idm", "selfplay", "bc", "replay", "aggressive", "normal", "cautious", "mix")
@@ -54,10 +55,10 @@ REGIME_ALIASES: dict[str, str] = {
 SPLITS: tuple[str, ...] = ("interactive", "random")
 #: Ego "policies" that are built-in simulator controllers (baselines, sanity checks).
 EGO_CONTROLLERS: dict[str, int] = {"replay": 1, "expert": 1, "idm": 2, "static": 3}
-#: Default shipped BC traffic model.
-DEFAULT_BC_PATH = Path(__file__).resolve().parents[2] / "zoo" / "bc_traffic.pt"
+#: Default shipped BC traffic model (inside the package, ``zoo/bc_traffic.pt`` in a clone).
+DEFAULT_BC_PATH = shipped_path("bc_traffic.pt")
 #: The shipped reward-conditioned self-play anchor: default co-player of the policy regimes.
-DEFAULT_TRAFFIC_PATH = Path(__file__).resolve().parents[2] / "zoo" / "anchor.zip"
+DEFAULT_TRAFFIC_PATH = shipped_path("anchor.zip")
 
 # cpsim.config enum values (contract in docs/ARCHITECTURE.md)
 _POLICY = 0
@@ -108,8 +109,9 @@ def make_tasks(pool: str | os.PathLike | Sequence[Any] = "procedural", split: st
 
     Args:
         pool: ``"procedural"`` (``cpsim.scenario.eval_pool(pool_size, seed)``, disjoint
-            from the training seeds), a folder of WOMD JSON / ``.npz`` files, or a list
-            of scenarios.
+            from the training seeds), a folder of WOMD ``.json`` / ``.json.gz`` / ``.npz``
+            files (one task per ``tracks_to_predict`` vehicle, ``cpsim.scenario.track_tasks``;
+            Random-N draws among eligible tasks), or a list of scenarios (tasks as given).
         split: ``interactive``, ``random`` or ``both``.
         n: tasks per split; clamped to what the pool offers (Interactive: eligible
             scenarios), an empty split raises ``ValueError``.
@@ -122,6 +124,7 @@ def make_tasks(pool: str | os.PathLike | Sequence[Any] = "procedural", split: st
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n: expected a positive integer, got {n!r}")
     names = resolve_split(split)
+    folder = False
     if isinstance(pool, (str, os.PathLike)):
         if str(pool) == "procedural":
             from cpsim.scenario import eval_pool
@@ -133,17 +136,22 @@ def make_tasks(pool: str | os.PathLike | Sequence[Any] = "procedural", split: st
                 raise ValueError(f"pool: {str(pool)!r} is neither 'procedural' nor a folder")
             from cpsim.scenario import load_dir
 
-            loaded = load_dir(path)
-            scenarios = list(loaded[0] if isinstance(loaded, tuple) else loaded)
+            # WOMD folder (.json, .json.gz, .npz): one task per tracks_to_predict vehicle,
+            # Random-N among eligible tasks only (BehaviorBench; DESIGN.md "Evaluation")
+            loaded, _report = load_dir(path)
+            scenarios = S.track_tasks(loaded)
+            folder = True
     else:
         scenarios = list(pool)
     if not scenarios:
         raise ValueError(f"pool: {pool!r} holds no scenarios")
     tasks: list[Task] = []
+    eligible = sum(t.eligible for t in S.interactivity_report(scenarios))
     for name in names:
         if name == "interactive":
-            eligible = sum(t.eligible for t in S.interactivity_report(scenarios))
             chosen = S.interactive_split(scenarios, min(int(n), eligible)) if eligible else []
+        elif folder:
+            chosen = S.random_split(scenarios, min(int(n), eligible), seed, eligible_only=True) if eligible else []
         else:
             chosen = S.random_split(scenarios, min(int(n), len(scenarios)), seed)
         if not chosen:
@@ -231,9 +239,12 @@ class FunctionEgo(EgoPolicy):
 def load_model(path: str | os.PathLike, argument: str = "policy") -> Any:
     """Load a checkpoint: an SB3 ``.zip`` (CounterPlay, RecurrentPPO or PPO) or a BC ``.pt``.
 
-    Raises ``ValueError`` naming the argument and the file when nothing can load it.
+    ``zoo/NAME`` names a shipped file (:func:`cpalgo.recipes.resolve_path`). A zip saved by
+    CounterPlay loads as :class:`~cpalgo.CounterPlay`, other zips through
+    :func:`cpsim.envs.regimes.load_policy` (RecurrentPPO, PPO, A2C, DQN). Raises ``ValueError`` naming the argument and the
+    file when nothing can load it.
     """
-    p = Path(path)
+    p = Path(resolve_path(path))
     if not p.is_file():
         raise ValueError(f"{argument}: checkpoint {str(p)!r} does not exist")
     if p.suffix == ".pt":
@@ -243,24 +254,33 @@ def load_model(path: str | os.PathLike, argument: str = "policy") -> Any:
             return BCPolicy.load(p)
         except Exception as exc:  # noqa: BLE001 - reported with the file name
             raise ValueError(f"{argument}: cannot load BC checkpoint {str(p)!r}: {exc}") from None
-    loaders: list[Any] = []
-    try:
-        from cpalgo.counterplay import CounterPlay  # type: ignore[attr-defined]
-
-        loaders.append(CounterPlay)
-    except Exception:  # noqa: BLE001 - the algorithm may not be importable yet
-        pass
     from sb3_contrib import RecurrentPPO
-    from stable_baselines3 import PPO
 
-    loaders += [RecurrentPPO, PPO]
-    errors = []
-    for cls in loaders:
+    from cpalgo import CounterPlay
+    from cpsim.envs.regimes import load_policy
+
+    if _saved_by(p, CounterPlay, RecurrentPPO):
         try:
-            return cls.load(str(p), device="cpu")
-        except Exception as exc:  # noqa: BLE001 - try the next algorithm class
-            errors.append(f"{cls.__name__}: {type(exc).__name__}: {exc}")
-    raise ValueError(f"{argument}: cannot load checkpoint {str(p)!r} ({'; '.join(errors)[:400]})")
+            return CounterPlay.load(str(p), device="cpu")
+        except Exception as exc:  # noqa: BLE001 - reported with the file name
+            raise ValueError(f"{argument}: cannot load CounterPlay checkpoint {str(p)!r}: {exc}") from None
+    return load_policy(p, argument)
+
+
+def _saved_by(path: Path, cls: type, parent: type) -> bool:
+    """Whether the SB3 zip at ``path`` holds constructor arguments that ``cls`` adds to
+    ``parent`` (SB3 saves an algorithm's settings under its argument names)."""
+    import inspect
+    import json
+    import zipfile
+
+    own = set(inspect.signature(cls.__init__).parameters) - set(inspect.signature(parent.__init__).parameters)
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = json.loads(z.read("data"))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        return False
+    return isinstance(data, dict) and bool(own & set(data))
 
 
 def as_ego_policy(policy: Any, label: str | None = None) -> EgoPolicy:
@@ -315,7 +335,8 @@ class EvalResult:
             ``non_at_fault_collision``, ``offroad``, ``timeout`` (bool); ``comfort``,
             ``lane_align``, ``lane_center`` ([0, 1]) and ``score`` (0-100) (float).
         trajectories: row -> recorded episode (``xy`` (A, T+1, 2) m, ``heading`` (A, T+1)
-            rad, ``speed`` (A, T+1) m/s, ``alive`` (A, T+1); index k = state after k steps;
+            rad, ``speed`` (A, T+1) m/s, ``velocity`` (A, T+1, 2) m/s, ``alive`` (A, T+1);
+            index k = state after k steps;
             ``sizes`` (A, 2), ``outcome`` (A,) simulator codes, ``goal_xy`` (2,) the ego's
             goal) for the rows asked for with ``record``.
         meta: run settings (deploy condition, timings, ...).
@@ -360,7 +381,9 @@ class EvalConfig:
 
     Attributes:
         deploy_condition: the ego's condition: profile name (``normal``, ``halfway`` =
-            normal-aggressive, ...) or an explicit raw 10-vector.
+            normal-aggressive, ...) or an explicit raw 10-vector. It sets the style fields
+            only; the task fields and the goal test are the evaluation criterion's
+            (:data:`cpsim.config.EVAL_GOAL`, 2 m, no effective speed limit).
         max_worlds: worlds per simulator chunk (task-regimes evaluated at once).
         max_agents: agent slots per world (None: the largest scenario, capped at 64).
         seed: simulator seed and mix-regime draw.
@@ -423,7 +446,7 @@ class Evaluator:
             raise ValueError("regimes: empty; give at least one regime")
         if len(set(self.regimes)) != len(self.regimes):
             raise ValueError(f"regimes: duplicates in {list(regimes)}")
-        self.deploy = resolve_condition(
+        self.deploy = deployment_condition(
             self.config.deploy_condition if isinstance(self.config.deploy_condition, str)
             else np.asarray(self.config.deploy_condition, np.float32), "deploy_condition")
         needs_traffic = {"selfplay", "aggressive", "normal", "cautious", "mix"} & set(self.regimes)
@@ -447,18 +470,23 @@ class Evaluator:
 
         import cpsim
 
-        # unique scenarios (by id) -> simulator pool
+        # unique (scenario id, ego) -> simulator pool: WOMD gives several tasks (egos) per
+        # scene, and the simulator puts the scenario's ego_index in slot 0
         self.scenarios: list[Any] = []
-        index: dict[str, int] = {}
+        index: dict[tuple[str, int], int] = {}
         for t in self.tasks:
-            if t.scenario_id not in index:
-                index[t.scenario_id] = len(self.scenarios)
+            if (t.scenario_id, t.ego) not in index:
+                index[(t.scenario_id, t.ego)] = len(self.scenarios)
                 self.scenarios.append(t.scenario)
         self.scenario_index = {k: v for k, v in index.items()}
         max_agents = self.config.max_agents or min(64, max(s.num_agents for s in self.scenarios))
         n_items = len(self.tasks) * len(self.regimes)
         self.num_worlds = int(min(self.config.max_worlds, n_items))
-        kwargs = {} if sim_config is None else {"config": sim_config}
+        # one goal test for every deployment condition and every agent (DESIGN.md,
+        # "Evaluation goal criterion"): 2 m, no effective speed limit
+        from cpsim.config import SimConfig
+
+        kwargs = {"config": SimConfig.from_dict(sim_config).replace(goal_criterion="evaluation")}
         self.sim = cpsim.Simulator(self.scenarios, num_worlds=self.num_worlds, max_agents=max_agents,
                                    device=self.config.device, seed=self.config.seed, **kwargs)
         self.obs_size = int(self.sim.obs_layout.size)
@@ -500,7 +528,7 @@ class Evaluator:
             "regime": np.array([r for _, r in rows]),
             "scenario_id": np.array([t.scenario_id for t, _ in rows]),
             "ego": np.array([t.ego for t, _ in rows], np.int64),
-            "scenario": np.array([self.scenario_index[t.scenario_id] for t, _ in rows], np.int64),
+            "scenario": np.array([self.scenario_index[(t.scenario_id, t.ego)] for t, _ in rows], np.int64),
         }
 
     @property
@@ -575,7 +603,7 @@ class Evaluator:
         ego.reset(W)
         episode_start = np.ones(W, bool)
         keep = [i for i, r in enumerate(world_rows[:k]) if int(r) in record]
-        rec: dict[str, list[np.ndarray]] = {"xy": [], "heading": [], "alive": [], "speed": []}
+        rec: dict[str, list[np.ndarray]] = {"xy": [], "heading": [], "alive": [], "speed": [], "velocity": []}
         horizon = int(sim.config.episode_steps)
         actions = np.zeros((W, A), np.int64)
         steps = 0
@@ -606,6 +634,7 @@ class Evaluator:
                     "heading": np.stack([x[j] for x in rec["heading"]], 1),
                     "alive": np.stack([x[j] for x in rec["alive"]], 1),
                     "speed": np.stack([x[j] for x in rec["speed"]], 1),
+                    "velocity": np.stack([x[j] for x in rec["velocity"]], 1),
                     "sizes": sizes[j], "goal_xy": goal[j], "outcome": outcome[w].copy(),
                 }
         return steps, traj
@@ -616,6 +645,7 @@ class Evaluator:
         rec["heading"].append(_np(sim.heading)[worlds].copy())
         rec["alive"].append(_np(sim.alive)[worlds].copy())
         rec["speed"].append(_np(sim.speed)[worlds].copy())
+        rec["velocity"].append(_np(sim.velocity)[worlds].copy())
 
     def _slot_sizes_goals(self, worlds: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """(len(worlds), A, 2) box sizes of each slot and (len(worlds), 2) ego goals."""
@@ -635,16 +665,11 @@ class Evaluator:
         sim = self.sim
         k = rows.size
         met = {name: _np(v)[:k] for name, v in sim.metrics.items()}
-        # Events from the accumulators rather than the sticky outcome: an ego that is not
-        # removed by its first event (a replayed expert) may reach its goal and collide
-        # later; the score and the outcome class must see both.
-        goal = met["goal_step"][:, 0] >= 0
-        collision = met["first_collision_step"][:, 0] >= 0
-        offroad = met["first_offroad_step"][:, 0] >= 0
-        timeout = ~(goal | collision | offroad)
-        fault = collision & met["at_fault"][:, 0].astype(bool)
-        acc = M.metrics_from_accumulators(met["steps_alive"][:, 0], met["comfort_violations"][:, 0],
-                                          met["aligned_steps"][:, 0], met["lateral_offset_sum"][:, 0])
+        # events from the accumulators (an ego not removed by its first event may reach its
+        # goal and collide later; the score and the outcome class must see both)
+        ep = M.episode_scores({name: v[:, 0] for name, v in met.items()})
+        goal, collision, offroad = ep["goal"], ep["collision"], ep["offroad"]
+        fault = ep["at_fault_collision"]
         # co-player harm: other vehicles that collided or went off-road during the episode
         agent_index = _np(sim.agent_index)[:k]
         scen = _np(sim.world_scenario)[:k]
@@ -655,12 +680,8 @@ class Evaluator:
         out["at_fault_collision"][rows] = fault
         out["non_at_fault_collision"][rows] = collision & ~fault
         out["offroad"][rows] = offroad
-        out["timeout"][rows] = timeout
-        out["comfort"][rows] = acc["comfort"]
-        out["lane_align"][rows] = acc["lane_align"]
-        out["lane_center"][rows] = acc["lane_center"]
-        out["score"][rows] = M.task_score(goal, fault, offroad, acc["comfort"], acc["lane_align"],
-                                          acc["lane_center"])
+        for key in ("timeout", "comfort", "lane_align", "lane_center", "score"):
+            out[key][rows] = ep[key]
         out["co_player_harm"][rows] = (harmed & vehicle).sum(1)
         out["steps_alive"][rows] = met["steps_alive"][:, 0]
         out["goal_step"][rows] = met["goal_step"][:, 0]
@@ -692,27 +713,9 @@ class _NoBar:
 def _progress(total: int, enabled: bool, label: str) -> Any:
     if not enabled:
         return _NoBar()
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # tqdm is not a declared dependency: fall back to plain lines
-        return _LineBar(total, label)
+    from tqdm.auto import tqdm
+
     return tqdm(total=total, desc=f"evaluate {label}", unit="task-regime", leave=False)
-
-
-class _LineBar:
-    """Minimal progress report on stderr when tqdm is missing."""
-
-    def __init__(self, total: int, label: str):
-        self.total, self.done, self.label = total, 0, label
-
-    def update(self, n: int) -> None:
-        import sys
-
-        self.done += n
-        print(f"evaluate {self.label}: {self.done}/{self.total} task-regimes", file=sys.stderr)
-
-    def close(self) -> None:
-        pass
 
 
 # ============================================================================ convenience

@@ -131,8 +131,10 @@ SUMMARY_METRICS_SOURCES: tuple[str, ...] = (
 
 def outcome_analysis(reference: "EvalResult", other: "EvalResult") -> dict[str, Any]:
     """The seed paper's failure-repair table: the reference policy's outcome classes over
-    all task-regimes, and for each class the share the other policy completes cleanly
-    (goal, no at-fault collision, no off-road, no co-player harm).
+    all task-regimes, and for each class the share the other policy repairs (the seed
+    paper's repair: its ego reaches the goal without any collision or off-road event,
+    :func:`metrics.repaired`) and, in its own column, the share in which the other policy
+    harmed a co-player (``"harm"``; not part of the repair).
 
     Both results must cover the same task-regimes in the same order.
     """
@@ -142,8 +144,8 @@ def outcome_analysis(reference: "EvalResult", other: "EvalResult") -> dict[str, 
             raise ValueError(f"outcome_analysis: results differ in their task-regimes (column {k!r}); "
                              "evaluate both policies on the same tasks and regimes")
     o = other.columns
-    clean = M.clean_completion(o["goal"], o["at_fault_collision"], o["offroad"], o["co_player_harm"])
-    table = M.repair_table(reference.columns["outcome_class"], clean)
+    repaired = M.repaired(o["goal"], o["at_fault_collision"], o["non_at_fault_collision"], o["offroad"])
+    table = M.repair_table(reference.columns["outcome_class"], repaired, o["co_player_harm"])
     return {"reference": reference.label, "other": other.label, "classes": table,
             "n": int(np.asarray(reference.columns["outcome_class"]).size)}
 
@@ -185,19 +187,27 @@ def markdown_tables(summary: Mapping[str, Any],
 
 def markdown_outcome_table(analyses: Sequence[Mapping[str, Any]]) -> str:
     """Markdown failure-repair table: one row per outcome class of the reference policy,
-    its share, and for each other policy the share of that class it completes cleanly."""
+    its share, and for each other policy the share of that class it repairs (goal without
+    any collision or off-road) and, in a column of its own, the share in which it harmed a
+    co-player."""
     if not analyses:
         return ""
     ref = analyses[0]["reference"]
     out = io.StringIO()
     out.write(f"### Outcome analysis — reference: {ref}, {analyses[0]['n']} task-regimes\n\n")
+    out.write("A repair: the ego reaches its goal without any collision or off-road event. "
+              "Co-player harm (another vehicle collided or left the road) is not part of it.\n\n")
     out.write("| Reference outcome | Share (%) | " + " | ".join(
-        f"{a['other']}: completed cleanly (%)" for a in analyses) + " |\n")
-    out.write("|---" * (2 + len(analyses)) + "|\n")
+        f"{a['other']}: repaired (%) | {a['other']}: co-player harm (%)" for a in analyses) + " |\n")
+    out.write("|---" * (2 + 2 * len(analyses)) + "|\n")
+
+    def pct(a: Mapping[str, Any], name: str, key: str) -> str:
+        c = a["classes"][name]
+        return f"{100 * c[key]:.1f}" if c["count"] and key in c else "-"
+
     for name in M.OUTCOME_CLASS_NAMES:
         c0 = analyses[0]["classes"][name]
-        cells = [f"{100 * a['classes'][name]['repaired']:.1f}" if a["classes"][name]["count"] else "-"
-                 for a in analyses]
+        cells = [f"{pct(a, name, 'repaired')} | {pct(a, name, 'harm')}" for a in analyses]
         out.write(f"| {name.replace('_', ' ')} | {100 * c0['share']:.1f} ({c0['count']}) | "
                   + " | ".join(cells) + " |\n")
     out.write("\n")

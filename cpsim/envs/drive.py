@@ -16,14 +16,21 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions
+from cpsim.conditions import NUM_CONDITION_FIELDS, deployment_condition, sample_conditions
 from cpsim.envs.regimes import TrafficDriver
+from cpsim.envs.viewer import HumanViewer, tile
+from cpsim.scoring import episode_scores
 from cpsim.envs.selfplay import (OUTCOME_NAMES, _np, copy_obs, make_simulator, observation_space_for,
                                  resolve_scenarios)
 
 EGO_SLOT = 0
 _POLICY = 0
 _TIMEOUT = 4
+#: the horizon ``cpsim/Drive-v0`` is registered with (``spec.max_episode_steps``):
+#: SimConfig's default and largest ``episode_steps`` (the logs' 91 steps)
+HORIZON = 91
+#: episode metrics added to the info of an episode's last step
+SCORE_KEYS = ("at_fault_collision", "comfort", "lane_align", "lane_center", "score")
 
 
 class DriveCore:
@@ -44,7 +51,10 @@ class DriveCore:
         if condition is None or (isinstance(condition, str) and condition == "train"):
             self.ego_condition: np.ndarray | None = None
         else:
-            self.ego_condition = resolve_condition(condition, "condition")
+            # a fixed deployment condition changes style fields only: one goal test
+            self.ego_condition = deployment_condition(condition, "condition")
+            if not (isinstance(config, dict) and "goal_criterion" in config):
+                config_overrides.setdefault("goal_criterion", "evaluation")
         pool = resolve_scenarios(scenarios, family=family, womd_dir=womd_dir, num_scenarios=num_scenarios,
                                  seed=0 if seed is None else int(seed))
         usable = [s for s in pool if bool(s.controllable[s.ego_index])]
@@ -59,7 +69,9 @@ class DriveCore:
         self.observation_space = observation_space_for(self.sim)
         self.action_space = spaces.Discrete(int(self.sim.config.num_actions))
         self.regime = self.driver.regime
-        self.rng = np.random.default_rng(seed)
+        #: one generator per world (scenario and condition draws), so that world ``i`` of a
+        #: vector env seeded with ``s + i`` replays ``DriveEnv`` seeded with ``s + i``
+        self.rngs = [np.random.default_rng(None if seed is None else int(seed) + w) for w in range(self.num_worlds)]
         self._actions = np.zeros((self.num_worlds, self.max_agents), np.int64)
         steps = int(self.sim.config.episode_steps) + 2
         self.trail = np.full((self.num_worlds, steps, 2), np.nan, np.float32)  # ego positions, m
@@ -69,10 +81,15 @@ class DriveCore:
     def reset_worlds(self, worlds: np.ndarray, scenario_index: np.ndarray | None = None) -> None:
         """Reset ``worlds``: draw scenarios and conditions, assign the regime, make slot 0 POLICY."""
         worlds = np.asarray(worlds, np.int64).reshape(-1)
-        k = worlds.size
+        drawn = np.zeros(worlds.size, np.int64)
+        cond = np.zeros((worlds.size, self.max_agents, NUM_CONDITION_FIELDS), np.float32)
+        for j, w in enumerate(worlds.tolist()):  # each world draws from its own generator
+            rng = self.rngs[w]
+            if scenario_index is None:
+                drawn[j] = rng.integers(0, len(self.scenarios), size=1)[0]
+            cond[j] = sample_conditions(rng, (1, self.max_agents))[0]
         if scenario_index is None:
-            scenario_index = self.rng.integers(0, len(self.scenarios), size=k)
-        cond = sample_conditions(self.rng, (k, self.max_agents))
+            scenario_index = drawn
         if self.ego_condition is not None:
             cond[:, EGO_SLOT] = self.ego_condition
         self.sim.reset(worlds=worlds, scenario_index=np.asarray(scenario_index), conditions=cond)
@@ -126,6 +143,11 @@ class DriveCore:
         self.trail_len = pos + 1
         return obs, reward, terminated, truncated, outcome
 
+    def episode_scores(self) -> dict[str, np.ndarray]:
+        """(W,) the egos' episode metrics so far (:func:`cpsim.scoring.episode_scores`);
+        read them on the step an episode ends, before its world resets."""
+        return episode_scores({k: _np(v)[:, EGO_SLOT] for k, v in self.sim.metrics.items()})
+
     def scenario_ids(self, worlds: np.ndarray | None = None) -> list[str]:
         idx = _np(self.sim.world_scenario)
         if worlds is not None:
@@ -145,8 +167,11 @@ class DriveEnv(gymnasium.Env):
     segments, normalised to about [-1, 1]). Action: Discrete(12) (jerk dynamics) or
     Discrete(91) (classic). Reward: the ego's conditioned reward. ``terminated`` when the
     ego reaches its goal, collides or leaves the road; ``truncated`` at the 91-step
-    horizon. ``info``: ``scenario_id``, ``step``, and at the end ``outcome`` ("goal" /
-    "collision" / "offroad" / "timeout") and ``is_success``.
+    horizon (``spec.max_episode_steps`` = 91, the longest ``episode_steps`` allows; a
+    shorter ``episode_steps`` ends episodes earlier). ``info``: ``scenario_id``,
+    ``step``, and at the end ``outcome`` ("goal" / "collision" / "offroad" / "timeout"),
+    ``is_success`` and the episode's BehaviorBench metrics (:data:`SCORE_KEYS`:
+    ``at_fault_collision``, ``comfort``, ``lane_align``, ``lane_center``, ``score`` 0-100).
 
     Args:
         scenarios: list of Scenario; or ``family`` (procedural family name) or
@@ -154,20 +179,26 @@ class DriveEnv(gymnasium.Env):
             Scenarios whose ego is not controllable are skipped.
         num_scenarios: cap on the pool (procedural family: number of seeds generated).
         dynamics: "jerk" (default) or "classic".
-        condition: the ego's reward condition: "train" (drawn from p_train at each reset),
-            a profile name ("normal", "cautious", ...) or a raw 10-vector.
+        condition: the ego's reward condition: "train" (drawn from p_train at each reset;
+            every agent's goal test uses its own goal_radius / goal_speed), or a fixed
+            deployment condition, a profile name ("normal", "cautious", ...) or a raw
+            10-vector: the ego gets its style fields only, and the goal test is the
+            evaluation criterion (``goal_criterion="evaluation"``: 2 m, no effective speed
+            limit, :data:`cpsim.config.EVAL_GOAL`) for every agent, whatever the profile;
+            pass ``goal_criterion="condition"`` to keep the per-agent test.
         regime: co-player traffic regime (:data:`cpsim.envs.regimes.REGIMES`).
-        coplayer_model: SB3 model or callable for policy regimes.
+        coplayer_model: SB3 model, callable or checkpoint path for policy regimes.
         coplayer_condition: co-players' condition under the "policy" regime.
         seed: default seed (``reset(seed=...)`` overrides).
-        render_mode: None or "rgb_array".
+        render_mode: None, "rgb_array" (``render()`` returns the frame) or "human" (a
+            matplotlib window shows every step; :mod:`cpsim.envs.viewer`).
         camera: "ego" or "scene" (rendering). view_m: ego camera width, m.
         render_size: (width, height) of rendered frames, pixels.
         max_agents: agent slots simulated (the ego plus the nearest others).
         config / other keywords: ``SimConfig`` and field overrides.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
 
     def __init__(self, scenarios: Sequence[Any] | None = None, *, family: str | None = None,
                  womd_dir: str | None = None, num_scenarios: int | None = None, dynamics: str | None = None,
@@ -192,11 +223,14 @@ class DriveEnv(gymnasium.Env):
         self.render_mode = render_mode
         self._default_seed = seed
         self._renderer = None
+        self._viewer: HumanViewer | None = None
         if render_mode is not None:
             from cpsim.render import TopDownRenderer
 
             self._renderer = TopDownRenderer(width=render_size[0], height=render_size[1], camera=camera,
                                              view_m=view_m)
+        if render_mode == "human":
+            self._viewer = HumanViewer("cpsim/Drive-v0", fps=self.metadata["render_fps"])
         self._needs_reset = True
 
     @property
@@ -217,7 +251,7 @@ class DriveEnv(gymnasium.Env):
         if seed is None and self._default_seed is not None and self._np_random is None:
             seed = self._default_seed
         super().reset(seed=seed)
-        self.core.rng = self.np_random
+        self.core.rngs = [self.np_random]
         if seed is not None:
             self.core.driver.seed(seed)
         scenario_index = None
@@ -231,6 +265,8 @@ class DriveEnv(gymnasium.Env):
             scenario_index = np.array([i])
         self.core.reset_worlds(np.array([0]), scenario_index)
         self._needs_reset = False
+        if self._viewer is not None:
+            self._viewer.show(self.core.render_world(self._renderer, 0))
         return self.core.ego_obs()[0], {"scenario_id": self.core.scenario_ids()[0], "step": 0}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -245,16 +281,27 @@ class DriveEnv(gymnasium.Env):
             name = OUTCOME_NAMES[int(outcome[0])]
             info["outcome"] = name
             info["is_success"] = name == "goal"
+            scores = self.core.episode_scores()
+            info.update({k: scores[k][0].item() for k in SCORE_KEYS})
+        if self._viewer is not None:
+            self._viewer.show(self.core.render_world(self._renderer, 0))
         return obs[0], float(reward[0]), term, trunc, info
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without render_mode; make the env with render_mode='rgb_array'")
             return None
-        return self.core.render_world(self._renderer, 0)
+        frame = self.core.render_world(self._renderer, 0)
+        if self._viewer is not None:  # human: every step already shows its frame
+            self._viewer.show(frame)
+            return None
+        return frame
 
     def close(self) -> None:
         self._renderer = None
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
 
 
 class DriveVectorEnv(VectorEnv):
@@ -263,11 +310,16 @@ class DriveVectorEnv(VectorEnv):
     Sub-environment ``i`` is world ``i`` (its ego = slot 0). Autoreset mode NEXT_STEP
     (gymnasium's default): the step after an episode ends resets that world and ignores
     its action, returning the new first observation with reward 0. ``infos`` (dict of
-    arrays with ``_key`` masks): ``outcome`` (str) and ``is_success`` where an episode
-    ended. Keyword arguments as :class:`DriveEnv`; rendering returns one frame per world.
+    arrays with ``_key`` masks) carries the single env's keys: ``scenario_id`` and
+    ``step`` for every sub-environment, and where an episode ended ``outcome`` (str),
+    ``is_success`` and :data:`SCORE_KEYS`. ``reset(seed=s)`` seeds sub-environment ``i``
+    with ``s + i`` (as ``DriveEnv`` seeded with ``s + i`` draws), ``reset(seed=[s0, s1,
+    ...])`` with one seed each (None: unseeded). Keyword arguments as :class:`DriveEnv`;
+    ``rgb_array`` rendering returns one frame per world, ``human`` shows them tiled.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10, "autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10,
+                "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, *, render_mode: str | None = None, camera: str = "ego",
                  view_m: float = 70.0, render_size: tuple[int, int] = (320, 320), seed: int | None = None,
@@ -286,11 +338,14 @@ class DriveVectorEnv(VectorEnv):
         self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self.render_mode = render_mode
         self._renderer = None
+        self._viewer: HumanViewer | None = None
         if render_mode is not None:
             from cpsim.render import TopDownRenderer
 
             self._renderer = TopDownRenderer(width=render_size[0], height=render_size[1], camera=camera,
                                              view_m=view_m)
+        if render_mode == "human":
+            self._viewer = HumanViewer("cpsim/Drive-v0 (vector)", fps=self.metadata["render_fps"])
         self._default_seed = seed
         self._autoreset = np.zeros(self.num_envs, bool)
         self._needs_reset = True
@@ -307,18 +362,35 @@ class DriveVectorEnv(VectorEnv):
               ) -> tuple[np.ndarray, dict[str, Any]]:
         if options:
             raise ValueError(f"options: unknown key(s) {sorted(options)}; accepted: []")
-        if isinstance(seed, (list, tuple)):
-            seed = None if seed[0] is None else int(seed[0])
         if seed is None and self._default_seed is not None and self._np_random is None:
             seed = self._default_seed
         if seed is not None:
-            self._np_random, self._np_random_seed = gymnasium.utils.seeding.np_random(int(seed))
-            self.core.driver.seed(int(seed))
-        self.core.rng = self.np_random
+            if isinstance(seed, (int, np.integer)):
+                seeds: list[int | None] = [int(seed) + i for i in range(self.num_envs)]
+            else:
+                seeds = [None if s is None else int(s) for s in seed]
+                if len(seeds) != self.num_envs:
+                    raise ValueError(f"seed: expected one seed per sub-environment ({self.num_envs}), "
+                                     f"got {len(seeds)}")
+            self.core.rngs = [gymnasium.utils.seeding.np_random(s)[0] for s in seeds]
+            first = next((s for s in seeds if s is not None), None)
+            self._np_random, self._np_random_seed = gymnasium.utils.seeding.np_random(first)
+            self.core.driver.seed(first)
         self.core.reset_worlds(np.arange(self.num_envs))
         self._autoreset[:] = False
         self._needs_reset = False
-        return self.core.ego_obs(), {}
+        self._show()
+        return self.core.ego_obs(), self._infos()
+
+    def _infos(self) -> dict[str, Any]:
+        """The keys every step reports for every sub-environment, with their ``_key`` masks."""
+        every = np.ones(self.num_envs, bool)
+        return {"scenario_id": np.array(self.core.scenario_ids(), dtype=object), "_scenario_id": every,
+                "step": _np(self.core.sim.step_count).astype(np.int64), "_step": every.copy()}
+
+    def _show(self) -> None:
+        if self._viewer is not None:
+            self._viewer.show(tile([self.core.render_world(self._renderer, w) for w in range(self.num_envs)]))
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         if self._needs_reset:
@@ -334,23 +406,34 @@ class DriveVectorEnv(VectorEnv):
             truncated[restart] = False
         ended = terminated | truncated
         self._autoreset = ended.copy()
-        infos: dict[str, Any] = {}
+        infos = self._infos()
         if np.any(ended):
             names = np.array([OUTCOME_NAMES[int(o)] for o in outcome], dtype=object)
             infos["outcome"] = np.where(ended, names, None)
             infos["_outcome"] = ended.copy()
             infos["is_success"] = ended & (outcome == 1)
             infos["_is_success"] = ended.copy()
+            scores = self.core.episode_scores()
+            for key in SCORE_KEYS:
+                infos[key] = np.where(ended, scores[key], np.zeros_like(scores[key]))
+                infos[f"_{key}"] = ended.copy()
+        self._show()
         return obs, reward, terminated, truncated, infos
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without render_mode; make the env with render_mode='rgb_array'")
             return None
+        if self._viewer is not None:  # human: every step already shows its frames
+            self._show()
+            return None
         return tuple(self.core.render_world(self._renderer, w) for w in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:
         self._renderer = None
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
 
 
-__all__ = ["DriveEnv", "DriveVectorEnv", "DriveCore", "EGO_SLOT"]
+__all__ = ["DriveEnv", "DriveVectorEnv", "DriveCore", "EGO_SLOT", "HORIZON", "SCORE_KEYS"]

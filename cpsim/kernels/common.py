@@ -12,7 +12,7 @@ import math
 
 import warp as wp
 
-from cpsim.config import DYNAMICS_MODELS, EVENT_RULES, SimConfig
+from cpsim.config import DYNAMICS_MODELS, EVENT_RULES, GOAL_CRITERIA, SimConfig
 
 #: The single Warp module every simulator kernel belongs to.
 KERNEL_MODULE = "cpsim.kernels"
@@ -56,10 +56,10 @@ class Params:
     lane_radius: float
     align_rad: float
     lane_width: float
-    no_lane_offset: float
     collide_types: int
     step_penalty: float
     road_max_segment: float
+    idm_v0: float
     idm_accel: float
     idm_brake: float
     idm_headway: float
@@ -72,6 +72,9 @@ class Params:
     partner_features: int
     road_features: int
     observe_all: int        # 1: every alive agent is observed; 0: POLICY and task agents only
+    goal_fixed: int         # 1: every agent's goal test uses goal_radius / goal_speed below;
+    goal_radius: float      #    0: each agent's own condition fields (SimConfig.goal_criterion)
+    goal_speed: float
 
 
 def make_params(config: SimConfig, layout) -> Params:
@@ -91,10 +94,10 @@ def make_params(config: SimConfig, layout) -> Params:
     p.lane_radius = float(config.lane_radius)
     p.align_rad = math.radians(config.align_deg)
     p.lane_width = float(config.lane_width)
-    p.no_lane_offset = float(config.no_lane_offset)
     p.collide_types = int(bool(config.collide_types))
     p.step_penalty = float(config.step_penalty)
     p.road_max_segment = float(config.road_max_segment)
+    p.idm_v0 = float(config.idm_v0)
     p.idm_accel = float(config.idm_accel)
     p.idm_brake = float(config.idm_brake)
     p.idm_headway = float(config.idm_headway)
@@ -107,6 +110,10 @@ def make_params(config: SimConfig, layout) -> Params:
     p.partner_features = int(layout.partner_features)
     p.road_features = int(layout.road_features)
     p.observe_all = int(bool(config.observe_all))
+    criterion = GOAL_CRITERIA[config.goal_criterion]
+    p.goal_fixed = int(criterion is not None)
+    p.goal_radius = float(criterion.radius) if criterion is not None else 0.0
+    p.goal_speed = float(criterion.speed) if criterion is not None else 0.0
     return p
 
 

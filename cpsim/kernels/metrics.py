@@ -4,10 +4,12 @@
 step it tests, against the poses after the motion:
 
 * collision with any other present collidable agent (SAT, distance pre-filter; scaled boxes),
-  the partner being the nearest colliding one, and the nuPlan collision case / fault;
+  the partner being the nearest colliding one, and its collision case / fault (BehaviorBench's
+  rules on the pre-contact state, ``cpsim.kernels.geometry``);
 * off-road (vehicles only): a road-edge segment of the cell's candidate list hits the box at
   its current pose or crosses a corner path from the previous pose;
-* goal: |pos - goal| < goal_radius and |speed| <= goal_speed (the agent's condition);
+* goal: |pos - goal| < goal_radius and |speed| <= goal_speed (the agent's condition, or the
+  fixed criterion of ``SimConfig.goal_criterion`` for every agent);
 * the nearest lane (heading error, lateral offset) for metrics, reward and observation.
 
 Then: outcome (sticky; collision > off-road > goal within one step), metrics accumulators,
@@ -29,8 +31,9 @@ from cpsim.kernels.common import (COLLISION, GOAL, IDM, KERNEL_MODULE, KERNEL_OP
                                   POLICY, RULE_IGNORE, RULE_REMOVE, RUNNING, STATIC, TIMEOUT,
                                   VEHICLE, Params)
 from cpsim.kernels.geometry import (box_corner_cs, boxes_overlap, collision_kind, grid_cell,
-                                    kind_at_fault, lane_query, segment_hits_box_cs,
-                                    segments_intersect, spans_two_lanes)
+                                    kind_at_fault, lane_distance, lane_query, segment_hits_box_cs,
+                                    segments_intersect, straddles_divider)
+from cpsim.kernels.observation import tracked_role
 from cpsim.kernels.reward import comfort_violations, write_reward
 from cpsim.model import ModelArrays
 from cpsim.state import State
@@ -40,17 +43,25 @@ from cpsim.state import State
 def offroad_test(m: ModelArrays, g: int, p: wp.vec2f, h: float, prev_p: wp.vec2f, prev_h: float,
                  half_len: float, half_wid: float) -> bool:
     """A road edge touches the box at (p, h) or crosses a corner path from (prev_p, prev_h)."""
+    return offroad_test_cs(m, g, p, h, wp.vec2f(wp.cos(h), wp.sin(h)), prev_p, prev_h,
+                           wp.vec2f(wp.cos(prev_h), wp.sin(prev_h)), half_len, half_wid)
+
+
+@wp.func
+def offroad_test_cs(m: ModelArrays, g: int, p: wp.vec2f, h: float, cs: wp.vec2f, prev_p: wp.vec2f,
+                    prev_h: float, prev_cs: wp.vec2f, half_len: float, half_wid: float) -> bool:
+    """:func:`offroad_test` given the (cos, sin) of both headings (the step's ``trig`` and
+    ``prev_trig``: no trigonometry per agent)."""
     cell = grid_cell(m, g, p, False)
     hit = bool(False)
     if cell >= 0:
         first = m.edge_start[cell]
         last = m.edge_start[cell + 1]
         if last > first:
-            # corners once per agent (cos / sin are the expensive part)
-            c = wp.cos(h)
-            s = wp.sin(h)
-            pc = wp.cos(prev_h)
-            ps = wp.sin(prev_h)
+            c = cs[0]
+            s = cs[1]
+            pc = prev_cs[0]
+            ps = prev_cs[1]
             moved = wp.length(p - prev_p) > 0.0 or h != prev_h
             a0 = box_corner_cs(prev_p, pc, ps, half_len, half_wid, 0)
             a1 = box_corner_cs(prev_p, pc, ps, half_len, half_wid, 1)
@@ -82,15 +93,32 @@ def offroad_test(m: ModelArrays, g: int, p: wp.vec2f, h: float, prev_p: wp.vec2f
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def events_kernel(state: State, model: ModelArrays, params: Params):
-    """Collisions, off-road, goal, lanes, outcome, metrics, reward, removal, timeout (over (W, A))."""
+def events_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
+                  trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
+                  present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
+                  roster_n: wp.array2d(dtype=wp.int32)):
+    """Collisions, off-road, goal, lanes, outcome, metrics, reward, removal, timeout (over (W, A)).
+
+    ``trig`` / ``prev_trig`` (heading (cos, sin) now and before the motion) and the roster
+    (``present_idx``, ``tracked_idx``, ``roster_n``) come from
+    :func:`cpsim.kernels.observation.prepare_kernel`, launched just before.
+
+    Tracked agents (:func:`cpsim.kernels.observation.tracked_role`: POLICY, IDM, task agents,
+    slot 0) get everything below. Scenery (REPLAY / STATIC agents without a task) is only
+    tested for collisions with tracked agents (so a collision of the ego or a co-player with a
+    parked or replayed car is recorded on both sides, partner and fault included), off-road,
+    goal and timeout: no lane query, no metrics accumulators (they stay 0), reward 0. Nothing
+    reads those for scenery, and scenery outnumbers the tracked agents about 5 to 1 on WOMD.
+    """
     w, a = wp.tid()
     if state.step_count[w] >= params.episode_steps or not state.present[w, a]:
-        state.reward[w, a] = 0.0
-        for k in range(state.reward_raw.shape[2]):
-            state.reward_raw[w, a, k] = 0.0
-            state.reward_w[w, a, k] = 0.0
+        if state.agent_index[w, a] >= 0:  # empty slots keep the zeros written at reset
+            state.reward[w, a] = 0.0
+            for k in range(state.reward_raw.shape[2]):
+                state.reward_raw[w, a, k] = 0.0
+                state.reward_w[w, a, k] = 0.0
         return
+    tracked = tracked_role(state.controller[w, a], state.task_agent[w, a], a, params.observe_all, track_all)
     t1 = state.step_count[w] + 1
     g = state.scenario[w]
     p = state.pos[w, a]
@@ -107,9 +135,15 @@ def events_kernel(state: State, model: ModelArrays, params: Params):
     partner = int(-1)
     best = float(1.0e30)
     if my_type == VEHICLE or params.collide_types != 0:
-        num = state.present.shape[1]
-        for j in range(num):
-            if j == a or not state.present[w, j]:
+        # tracked: every present agent; scenery: the present tracked ones (both in slot order)
+        num = roster_n[w, 1]
+        if tracked:
+            num = roster_n[w, 0]
+        for k in range(num):
+            j = tracked_idx[w, k]
+            if tracked:
+                j = present_idx[w, k]
+            if j == a:
                 continue
             if state.agent_type[w, j] != VEHICLE and params.collide_types == 0:
                 continue
@@ -129,41 +163,58 @@ def events_kernel(state: State, model: ModelArrays, params: Params):
     # ---------------------------------------------------------------- off-road
     offroad = bool(False)
     if my_type == VEHICLE:
-        offroad = offroad_test(model, g, p, h, state.prev_pos[w, a], state.prev_heading[w, a], 0.5 * L, 0.5 * Wd)
+        offroad = offroad_test_cs(model, g, p, h, trig[w, a], state.prev_pos[w, a], state.prev_heading[w, a],
+                                  prev_trig[w, a], 0.5 * L, 0.5 * Wd)
     # ---------------------------------------------------------------- goal
     gr = state.conditions[w, a, 0]
     gs = state.conditions[w, a, 1]
+    if params.goal_fixed != 0:  # one goal test for everyone (SimConfig.goal_criterion)
+        gr = params.goal_radius
+        gs = params.goal_speed
     reached = wp.length(p - state.goal[w, a]) < gr and wp.abs(v) <= gs
     goal_now = reached and state.goal_step[w, a] < 0
-    # ---------------------------------------------------------------- lane
-    sid, ld, offset, err = lane_query(model, g, p, h, params.lane_radius)
-    has_lane = sid >= 0
+    # ---------------------------------------------------------------- lane (tracked only)
+    has_lane = bool(False)
+    err = float(0.0)
+    offset = float(0.0)
+    if tracked:
+        sid, ld, q_offset, q_err = lane_query(model, g, p, h, params.lane_radius)
+        if sid >= 0:
+            has_lane = bool(True)
+            err = q_err
+            offset = q_offset
     state.has_lane[w, a] = has_lane
-    if has_lane:
-        state.lane_err[w, a] = err
-        state.lane_offset[w, a] = offset
-    else:
-        state.lane_err[w, a] = 0.0
-        state.lane_offset[w, a] = 0.0
-    # ---------------------------------------------------------------- metrics
-    violations = comfort_violations(state.accel[w, a], state.lat_accel[w, a], state.jerk[w, a])
-    state.steps_alive[w, a] = state.steps_alive[w, a] + 1
-    state.comfort_violations[w, a] = state.comfort_violations[w, a] + violations
-    if has_lane and wp.abs(err) < params.align_rad:
-        state.aligned_steps[w, a] = state.aligned_steps[w, a] + 1
-    if has_lane:
-        state.lateral_offset_sum[w, a] = state.lateral_offset_sum[w, a] + wp.abs(offset)
-    else:
-        state.lateral_offset_sum[w, a] = state.lateral_offset_sum[w, a] + params.no_lane_offset
+    state.lane_err[w, a] = err
+    state.lane_offset[w, a] = offset
+    # ---------------------------------------------------------------- metrics (tracked only)
+    violations = int(0)
+    if tracked:
+        violations = comfort_violations(state.accel[w, a], state.lat_accel[w, a], state.jerk[w, a],
+                                        state.lat_jerk[w, a])
+        state.steps_alive[w, a] = state.steps_alive[w, a] + 1
+        state.comfort_violations[w, a] = state.comfort_violations[w, a] + violations
+        if has_lane and wp.abs(err) < params.align_rad:
+            state.aligned_steps[w, a] = state.aligned_steps[w, a] + 1
+        if has_lane:
+            state.lateral_offset_sum[w, a] = state.lateral_offset_sum[w, a] + wp.abs(offset)
+        else:
+            # the true distance to the nearest lane centreline (beyond lane_radius)
+            state.lateral_offset_sum[w, a] = state.lateral_offset_sum[w, a] + lane_distance(model, g, p)
     if collided:
+        # BehaviorBench's at-fault rules, from the state one step before contact
         j = partner
-        sj = state.size[w, j]
-        kind = collision_kind(p, h, v, L, Wd, state.pos[w, j], state.heading[w, j], state.speed[w, j],
-                              sj[0] * scale, sj[1] * scale)
-        spans = bool(False)
-        if kind == 4:
-            spans = spans_two_lanes(model, g, p, h, 0.5 * L, 0.5 * Wd, params.lane_radius)
-        if kind_at_fault(kind, spans):
+        ph = state.prev_heading[w, a]
+        kind = collision_kind(state.prev_pos[w, a], ph, state.prev_vel[w, a], state.prev_pos[w, j],
+                              state.prev_vel[w, j], state.agent_type[w, j] != VEHICLE)
+        straddled = bool(False)
+        if kind == 2 or kind == 4:
+            nh = state.pos_hist.shape[2]
+            newest = state.step_count[w] % nh
+            straddled = straddles_divider(model, g, state.pos_hist[w, a, (newest + 1) % nh],
+                                          state.pos_hist[w, a, (newest + 2) % nh],
+                                          state.pos_hist[w, a, (newest + 3) % nh],
+                                          state.pos_hist[w, a, newest], ph, Wd, params.lane_radius)
+        if kind_at_fault(kind, straddled):
             state.at_fault[w, a] = True
         if state.first_collision_step[w, a] < 0:
             state.first_collision_step[w, a] = t1
@@ -180,10 +231,16 @@ def events_kernel(state: State, model: ModelArrays, params: Params):
             state.outcome[w, a] = OFFROAD
         elif goal_now:
             state.outcome[w, a] = GOAL
-    # ---------------------------------------------------------------- reward
-    state.reward[w, a] = write_reward(state.conditions, state.reward_raw, state.reward_w, w, a,
-                                      goal_now, collided, offroad, violations, has_lane, err, offset, v,
-                                      params.lane_radius, params.lane_width, params.step_penalty)
+    # ---------------------------------------------------------------- reward (tracked only)
+    if tracked:
+        state.reward[w, a] = write_reward(state.conditions, state.reward_raw, state.reward_w, w, a,
+                                          goal_now, collided, offroad, violations, has_lane, err, offset, v,
+                                          params.lane_radius, params.lane_width, params.step_penalty)
+    else:
+        state.reward[w, a] = 0.0
+        for k in range(state.reward_raw.shape[2]):
+            state.reward_raw[w, a, k] = 0.0
+            state.reward_w[w, a, k] = 0.0
     # ---------------------------------------------------------------- removal
     ctrl = state.controller[w, a]
     rule = RULE_IGNORE
@@ -230,4 +287,4 @@ def finish_kernel(state: State, params: Params, worlds: wp.array(dtype=wp.int32)
     state.world_done[w] = t >= params.episode_steps or not any_policy
 
 
-__all__ = ["events_kernel", "finish_kernel", "offroad_test"]
+__all__ = ["events_kernel", "finish_kernel", "offroad_test", "offroad_test_cs"]

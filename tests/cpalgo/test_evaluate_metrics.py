@@ -15,6 +15,9 @@ def test_comfort_violations_counted_per_limit():
     jerk = np.array([0.0, 0.0, 5.0, 0.0, -6.0, 9.0])
     # limits are strict: exactly 3 / 5 is not a violation
     assert M.comfort_violations(a_long, a_lat, jerk).tolist() == [0, 1, 1, 0, 2, 3]
+    # the jerk check counts longitudinal OR lateral jerk (once per step)
+    lat_jerk = np.array([6.0, 0.0, -5.0, -5.5, 6.0, 9.0])
+    assert M.comfort_violations(a_long, a_lat, jerk, lat_jerk).tolist() == [1, 1, 1, 1, 2, 3]
 
 
 def test_comfort_metric_matches_definition_and_clamps():
@@ -72,8 +75,9 @@ def test_alignment_threshold_at_15_degrees():
 def test_lateral_offset_far_from_lanes_and_centering_clamp():
     segs, _ = _straight_lane()
     q = M.lane_queries(np.array([[30.0, 3.9], [30.0, 4.1], [-3.0, 0.0]]), np.zeros(3), segs)
-    np.testing.assert_allclose(q["lateral_offset"], [3.9, M.NO_LANE_OFFSET, 3.0], rtol=1e-6)
-    assert q["aligned"].tolist() == [True, False, True]
+    # the true distance, also beyond the 4 m search radius (no 10 m placeholder)
+    np.testing.assert_allclose(q["lateral_offset"], [3.9, 4.1, 3.0], rtol=1e-6)
+    assert q["aligned"].tolist() == [True, False, True] and q["segment"][1] == -1
     # lane_center clamps at a mean of 2 m: 1 m -> 0.5, 3.9 m and 10 m -> 0
     T = 5
     lat = np.array([[1.0] * T, [3.9] * T, [10.0] * T, [0.0] * T])
@@ -168,61 +172,79 @@ def test_repair_table_shares():
     assert t["at_fault_collision"]["repaired"] == 0.0
     assert np.isnan(t["offroad"]["repaired"])
     assert sum(v["share"] for v in t.values()) == pytest.approx(1.0)
+    assert all("harm" not in v for v in t.values())
+
+
+def test_repair_is_goal_without_any_collision_or_offroad_harm_apart():
+    #            goal   at-fault  non-fault  offroad  co-player harm
+    rows = [(True, False, False, False, 0),   # repaired
+            (True, False, False, False, 2),   # repaired: harm is not part of the definition
+            (True, False, True, False, 0),    # not-at-fault collision: not a repair
+            (True, True, False, False, 0),    # at-fault collision
+            (True, False, False, True, 0),    # off-road
+            (False, False, False, False, 0)]  # timeout
+    g, af, nf, off, harm = (np.array(c) for c in zip(*rows))
+    ok = M.repaired(g, af, nf, off)
+    assert ok.tolist() == [True, True, False, False, False, False]
+    C = M.OutcomeClass
+    ref = np.full(len(rows), C.TIMEOUT)
+    t = M.repair_table(ref, ok, harm)
+    assert t["timeout"]["repaired"] == pytest.approx(2 / 6)
+    assert t["timeout"]["harm"] == pytest.approx(1 / 6)   # its own column
+    assert np.isnan(t["completed"]["harm"])
+    with pytest.raises(ValueError, match="other_harm"):
+        M.repair_table(ref, ok, harm[:3])
 
 
 # ----------------------------------------------------------------------------- at fault
-CAR = np.array([4.0, 2.0])
+# The simulator's kernel is the one implementation (cpsim.kernels.geometry); the evaluation
+# reads its at_fault flag. These hand-made cases pin BehaviorBench's rules on its NumPy
+# reference (the kernel is checked against the same cases in tests/cpsim/test_sim_geometry.py).
+def _v(speed, heading=0.0):
+    return speed * np.array([np.cos(heading), np.sin(heading)])
 
 
-def _classify(ego, other, ego_speed, other_speed):
-    return M.collision_type(np.array(ego[:2]), ego[2], ego_speed, CAR,
-                            np.array(other[:2]), other[2], other_speed, CAR)
-
-
-def test_at_fault_five_cases():
-    T = M.CollisionType
+def test_at_fault_rules_hand_made():
+    G = pytest.importorskip("cpsim.kernels.geometry")
+    K = G
     cases = [
-        # stopped ego, hit from behind by a moving car: no fault
-        ((0, 0, 0), (-3.5, 0, 0), 0.0, 5.0, T.STOPPED_EGO, False),
-        # moving ego hits a stopped car ahead: fault
-        ((0, 0, 0), (3.5, 0, 0), 5.0, 0.0, T.STOPPED_TRACK, True),
-        # moving ego runs into a slower moving car ahead with its front: fault
-        ((0, 0, 0), (3.8, 0.5, 0), 8.0, 3.0, T.ACTIVE_FRONT, True),
-        # moving ego rear-ended by a faster car: no fault
-        ((0, 0, 0), (-3.8, 0.2, 0), 3.0, 8.0, T.ACTIVE_REAR, False),
-        # side swipe: a car alongside merges into the ego's flank
-        ((0, 0, 0), (-0.5, 1.9, -0.1), 5.0, 5.0, T.ACTIVE_LATERAL, None),
+        # (ego xy, heading, velocity), (other xy, velocity), other vulnerable, kind
+        (((0, 0), 0.0, _v(0.0)), ((-4.8, 0), _v(5.0)), False, K.STOPPED_EGO),     # stopped ego
+        (((0, 0), 0.0, _v(0.04)), ((4.8, 0), _v(5.0, np.pi)), False, K.STOPPED_EGO),  # 0.04 <= 0.05
+        (((0, 0), 0.0, _v(5.0)), ((4.8, 0), _v(0.0)), False, K.STOPPED_TRACK),    # stopped other
+        (((0, 0), 0.0, _v(2.0)), ((-5.0, 0.5), _v(8.0)), False, K.ACTIVE_REAR),   # from behind
+        (((0, 0), 0.0, _v(8.0)), ((4.8, 0.5), _v(3.0)), False, K.ACTIVE_FRONT),   # closing 5 m/s
+        (((0, 0), 0.0, _v(5.0)), ((4.5, 0), _v(4.6)), False, K.ACTIVE_LATERAL),   # closing 0.4 m/s
+        (((0, 0), 0.0, _v(5.0)), ((2.0, 3.0), _v(9.0)), False, K.ACTIVE_LATERAL), # bearing 56 deg, closing < 0
+        (((0, 0), 0.0, _v(5.0)), ((1.0, 2.0), _v(5.0, -0.3)), False, K.ACTIVE_LATERAL),  # 63 deg
+        (((0, 0), 0.0, _v(5.0)), ((-1.0, -2.0), _v(5.0, 0.3)), False, K.ACTIVE_LATERAL),  # 117 deg
+        (((0, 0), 0.0, _v(0.0)), ((1.0, 1.5), _v(1.0, -np.pi / 2)), True, K.VULNERABLE),  # pedestrian
     ]
-    for ego, other, ve, vo, want, fault in cases:
-        kind = _classify(ego, other, ve, vo)
-        assert kind == want, (ego, other, kind)
-        if fault is not None:
-            assert M.at_fault(kind, False) == fault
-            assert M.at_fault(kind, True) == fault  # lanes only matter for lateral
-    lateral = np.array([T.ACTIVE_LATERAL, T.ACTIVE_LATERAL])
-    assert M.at_fault(lateral, np.array([True, False])).tolist() == [True, False]
+    for (exy, eh, ev), (oxy, ov), vru, kind in cases:
+        got = G.classify_collision(np.array(exy, float), eh, ev, np.array(oxy, float), ov, vru)
+        assert got == kind, ((exy, oxy), G.COLLISION_KIND_NAMES[got])
+    fault = {K.STOPPED_EGO: (False, False), K.STOPPED_TRACK: (True, True), K.ACTIVE_REAR: (False, True),
+             K.ACTIVE_FRONT: (True, True), K.ACTIVE_LATERAL: (False, True), K.VULNERABLE: (True, True)}
+    for kind, (plain, straddling) in fault.items():
+        assert G.classify_fault(kind, False) == plain and G.classify_fault(kind, True) == straddling
 
 
-def test_collision_type_vectorised_matches_scalar():
-    rng = np.random.default_rng(1)
-    n = 200
-    ego = np.c_[rng.normal(0, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
-    oth = np.c_[rng.normal(0, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
-    ve, vo = rng.choice([0.0, 4.0], n), rng.choice([0.0, 4.0], n)
-    sizes = np.tile(CAR, (n, 1))
-    vec = M.collision_type(ego[:, :2], ego[:, 2], ve, sizes, oth[:, :2], oth[:, 2], vo, sizes)
-    one = [int(_classify(ego[i], oth[i], ve[i], vo[i])) for i in range(n)]
-    assert vec.tolist() == one
-    assert set(vec.tolist()) >= {0, 1, 2, 3, 4}
-
-
-def test_ego_spans_two_lanes():
-    # two parallel lanes, 3.6 m apart
+def test_straddling_a_lane_divider():
+    G = pytest.importorskip("cpsim.kernels.geometry")
+    # two parallel lanes 3.6 m apart; a 2 m wide car reaches centrelines within 1 + 1.75 m
     pts = np.array([[0, 0], [100, 0], [0, 3.6], [100, 3.6]], np.float64)
     segs, ids = M.lane_segments(pts, np.array([0, 2, 4]), np.array([0, 0]))
-    xy = np.array([[50.0, 0.2], [50.0, 1.8], [50.0, 3.4]])
-    spans = M.ego_spans_two_lanes(xy, np.zeros(3), np.tile(CAR, (3, 1)), segs, ids)
-    assert spans.tolist() == [False, True, False]
+
+    def straddles(ys, xs=(47.0, 48.0, 49.0, 50.0), heading=0.0, width=2.0):
+        return G.straddles_divider_np(np.c_[xs, ys], heading, width, segs, ids)
+
+    assert straddles([0.2, 0.4, 0.6, 0.9])          # drift 0.7 m, 2.7 m from lane 1 at the end
+    assert not straddles([0.9, 0.9, 0.9, 0.9])      # near two lanes but no drift
+    assert not straddles([0.6, 0.7, 0.8, 0.85])     # drift 0.25 <= 0.3
+    assert not straddles([-0.6, -0.3, 0.0, 0.3])    # drift 0.9 m within one lane (3.3 m from lane 1)
+    assert straddles([-0.6, -0.3, 0.0, 0.3], width=3.2)  # a wider box reaches 1.6 + 1.75 = 3.35 m
+    assert straddles([0.0, 0.0, 0.0, 0.9])          # drift from the oldest to the newest position
+    assert not straddles([0.0, 0.3, 0.6, 0.9], xs=(50.0, 50.0, 50.0, 50.0), heading=np.pi / 2)  # drift along
 
 
 def test_summarize_rates():
@@ -232,21 +254,3 @@ def test_summarize_rates():
     s = M.summarize(per)
     assert s == {"n": 4, "score": 35.0, "completion": 0.5, "at_fault_collision": 0.25,
                  "offroad": 0.25, "co_player_harm": 0.5}
-
-
-def test_collision_rules_agree_with_simulator_reference():
-    """The simulator's NumPy reference of its kernel rule gives the same case as ours."""
-    G = pytest.importorskip("cpsim.kernels.geometry")
-    rng = np.random.default_rng(7)
-    n = 300
-    ego = np.c_[rng.normal(0, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
-    oth = np.c_[rng.normal(0, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
-    ve, vo = rng.choice([0.0, 0.04, 4.0], n), rng.choice([0.0, -3.0, 4.0], n)
-    se = rng.uniform([3.5, 1.6], [5.5, 2.2], (n, 2))
-    so = rng.uniform([3.5, 1.6], [5.5, 2.2], (n, 2))
-    ours = M.collision_type(ego[:, :2], ego[:, 2], ve, se, oth[:, :2], oth[:, 2], vo, so)
-    theirs = [G.classify_collision(ego[i, :2], ego[i, 2], ve[i], se[i], oth[i, :2], oth[i, 2], vo[i], so[i])
-              for i in range(n)]
-    assert ours.tolist() == theirs
-    spans = rng.random(n) < 0.5
-    assert M.at_fault(ours, spans).tolist() == [G.classify_fault(k, s) for k, s in zip(theirs, spans)]

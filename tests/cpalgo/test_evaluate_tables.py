@@ -72,13 +72,24 @@ def test_markdown_layout_regimes_as_columns_policies_as_rows():
 
 def test_outcome_analysis_counts_repairs():
     ref, other = _result("anchor", 0.3, 1), _result("counterplay", 0.9, 5)
+    # some of the other policy's goals come with a not-at-fault collision: not repairs
+    other.columns["non_at_fault_collision"] = other.columns["goal"] & (np.arange(other.num_rows) % 4 == 0)
     a = TB.outcome_analysis(ref, other)
     cls = ref.columns["outcome_class"]
-    clean = other.columns["goal"] & (other.columns["co_player_harm"] == 0)
+    # a repair: goal without any collision or off-road; co-player harm does not matter
+    repaired = other.columns["goal"] & ~other.columns["non_at_fault_collision"]
+    harm = other.columns["co_player_harm"] > 0
+    assert (repaired & harm).any()
     t = a["classes"]["timeout"]
     m = cls == M.OutcomeClass.TIMEOUT
     assert t["count"] == int(m.sum())
-    assert t["repaired"] == pytest.approx(clean[m].mean())
+    assert t["repaired"] == pytest.approx(repaired[m].mean())
+    assert t["harm"] == pytest.approx(harm[m].mean())
+    md = TB.markdown_outcome_table([a])
+    assert "counterplay: repaired (%) | counterplay: co-player harm (%)" in md
+    line = next(ln for ln in md.splitlines() if ln.startswith("| timeout |"))
+    assert line.split("|")[3].strip() == f"{100 * repaired[m].mean():.1f}"
+    assert line.split("|")[4].strip() == f"{100 * harm[m].mean():.1f}"
     other.columns["regime"] = other.columns["regime"][::-1].copy()
     with pytest.raises(ValueError, match="regime"):
         TB.outcome_analysis(ref, other)

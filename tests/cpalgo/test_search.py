@@ -216,6 +216,50 @@ def test_verify_discards_when_rerun_fails():
     assert verify(_outcome(False), _outcome(True, arrival=62))
 
 
+def test_verify_passes_when_the_factual_rerun_is_lucky_too():
+    # the factual rerun also completes, even earlier: the candidate rerun does not outrank
+    # it (admit would reject it), but verification only asks for a clean completion
+    # and the per-vehicle test
+    lucky = _outcome(True, arrival=40)
+    rerun = _outcome(True, arrival=55)
+    assert not admit(lucky, rerun)
+    assert verify(lucky, rerun)
+    # same arrival: still verified
+    assert verify(_outcome(True, arrival=55), _outcome(True, arrival=55))
+    # a lucky factual rerun does not excuse a new neighbour collision
+    assert not verify(lucky, _outcome(True, arrival=55, col=[-1, -1, 60, -1]))
+
+
+def test_verify_requires_a_clean_completion_of_the_focal_agent():
+    factual = _outcome(False)
+    # completes, but the focal agent collided or left the road on the way (an "ignore"
+    # event rule keeps it driving): not a clean completion
+    assert not verify(factual, _outcome(True, arrival=60, col=[30, -1, -1, -1]))
+    assert not verify(factual, _outcome(True, arrival=60, off=[30, -1, -1, -1]))
+    # an event of the focal agent in the factual rerun does not matter
+    assert verify(_outcome(False, col=[50, -1, -1, -1]), _outcome(True, arrival=60))
+
+
+def test_verify_per_vehicle_test_against_the_fresh_factual_rerun():
+    # neighbour 1 collides at 70 in the factual rerun: the same collision at 70 or later in
+    # the candidate rerun is not caused by it; earlier or a new vehicle is
+    factual = _outcome(False, col=[-1, 70, -1, -1], off=[-1, -1, 40, -1])
+    assert verify(factual, _outcome(True, arrival=50, col=[-1, 70, -1, -1]))
+    assert verify(factual, _outcome(True, arrival=50, col=[-1, 80, -1, -1], off=[-1, -1, 45, -1]))
+    assert not verify(factual, _outcome(True, arrival=50, col=[-1, 69, -1, -1]))
+    assert not verify(factual, _outcome(True, arrival=50, off=[-1, -1, 39, -1]))
+    assert not verify(factual, _outcome(True, arrival=50, off=[-1, -1, -1, 60]))
+    # events of slots absent from both branches are ignored
+    absent = BranchOutcome(focal=0, completed=True, arrival_step=50, first_collision_step=[-1, -1, -1, 20],
+                           first_offroad_step=np.full(4, -1), present=[True, True, True, False])
+    factual_absent = BranchOutcome(focal=0, completed=False, arrival_step=-1,
+                                   first_collision_step=np.full(4, -1), first_offroad_step=np.full(4, -1),
+                                   present=[True, True, True, False])
+    assert verify(factual_absent, absent)
+    with pytest.raises(ValueError, match="candidate_rerun"):
+        verify(_outcome(False), _outcome(True, arrival=3, n=5))
+
+
 def test_choose_teacher_by_rank_and_by_return():
     factual = _outcome(False, col=[-1, -1, 55, -1])
     candidates = [
@@ -226,7 +270,40 @@ def test_choose_teacher_by_rank_and_by_return():
         _outcome(True, arrival=60, ret=2.0),
     ]
     assert choose_teacher(factual, candidates) == 3            # earliest arrival, first of the tie
-    assert choose_teacher(factual, candidates, selection="return") == 2
     assert choose_teacher(factual, candidates[:2]) is None
     with pytest.raises(ValueError, match="selection"):
         choose_teacher(factual, candidates, selection="best")
+
+
+def test_choose_teacher_by_return_has_no_completion_or_safety_filter():
+    # selection by reward: the highest return under its own condition wins, even an
+    # incomplete retry or one that crashes a neighbour; nothing is filtered out first
+    factual = _outcome(False, col=[-1, -1, 55, -1])
+    incomplete = _outcome(False, ret=9.0)
+    crash = _outcome(True, arrival=50, col=[-1, -1, 45, -1], ret=8.0)
+    clean = _outcome(True, arrival=60, ret=5.0)
+    assert not admit(factual, incomplete) and not admit(factual, crash) and admit(factual, clean)
+    assert choose_teacher(factual, [clean, crash, incomplete], selection="return") == 2
+    assert choose_teacher(factual, [clean, crash], selection="return") == 1
+    # a teacher even when no candidate is admissible (rank selection finds none)
+    assert choose_teacher(factual, [crash, incomplete], selection="rank") is None
+    assert choose_teacher(factual, [crash, incomplete], selection="return") == 1
+    # ties: first in panel order; a NaN return never wins
+    assert choose_teacher(factual, [_outcome(False, ret=2.0), _outcome(True, arrival=9, ret=2.0)],
+                          selection="return") == 0
+    assert choose_teacher(factual, [_outcome(False, ret=float("nan")), _outcome(False, ret=-5.0)],
+                          selection="return") == 1
+    assert choose_teacher(factual, [], selection="return") is None
+    with pytest.raises(ValueError, match="candidate"):
+        choose_teacher(factual, [_outcome(True, arrival=3, n=5)], selection="return")
+
+
+def test_return_selection_still_goes_through_verification():
+    # the reward-selected retry (incomplete, highest return) is checked by the reruns like
+    # any teacher: its rerun must complete cleanly and pass the per-vehicle test
+    factual = _outcome(False)
+    candidates = [_outcome(True, arrival=60, ret=1.0), _outcome(False, ret=3.0)]
+    j = choose_teacher(factual, candidates, selection="return")
+    assert j == 1
+    assert not verify(_outcome(False), _outcome(False, ret=3.0))          # rerun fails: discarded
+    assert verify(_outcome(False), _outcome(True, arrival=70, ret=3.5))   # rerun completes: kept

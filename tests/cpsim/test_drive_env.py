@@ -82,7 +82,7 @@ def test_gymnasium_make_and_episode(scenarios):
 @pytest.mark.parametrize("regime", ["replay", "idm", "static", "policy", "aggressive", "normal",
                                     "cautious", "mix", "expert"])
 def test_every_regime_runs_an_episode(scenarios, ppo_model, regime):
-    from cpsim.conditions import profile
+    from cpsim.conditions import deployment_condition, profile
     from cpsim.envs.regimes import MIX_PROFILES
 
     env = make(scenarios, regime=regime, coplayer_model=ppo_model, condition="normal", max_agents=5)
@@ -93,7 +93,9 @@ def test_every_regime_runs_an_episode(scenarios, ppo_model, regime):
     expected = {"replay": 1, "expert": 1, "idm": 2, "static": 3}.get(regime, 0)
     assert np.all(ctrl[co] == expected)
     cond = env.sim.conditions.cpu().numpy()[0]
-    np.testing.assert_allclose(cond[0], profile("normal"))  # the ego's condition
+    # the ego's condition: the normal style with the evaluation criterion's task fields
+    np.testing.assert_allclose(cond[0], deployment_condition("normal"))
+    assert env.sim.config.goal_criterion == "evaluation"
     if regime in ("aggressive", "normal", "cautious"):
         np.testing.assert_allclose(cond[co], np.broadcast_to(profile(regime), cond[co].shape))
     if regime == "mix":
@@ -129,6 +131,36 @@ def test_policy_regime_coplayers_follow_the_model(scenarios):
     assert calls[0][0] == co.sum()
     braked = co & alive & (v0 > 1.0)
     assert braked.any() and np.all(v1[braked] < v0[braked])
+
+
+def test_mix_rotates_the_profiles_over_the_coplayers():
+    """mix: the k-th co-player of each world (slot order) gets aggressive / normal / cautious
+    for k % 3 = 0 / 1 / 2; the same every reset and whatever the seed (no random draw)."""
+    from cpsim.conditions import profile
+    from cpsim.envs.regimes import MIX_PROFILES, TrafficDriver
+    from tests.cpsim.scenes import agent, make_scenario
+
+    sc = make_scenario([agent(10.0 * i, 3.7 * (i % 2), speed=5.0, goal=(10.0 * i + 100.0, 3.7 * (i % 2)))
+                        for i in range(8)])
+    sim = cpsim.Simulator([sc], num_worlds=3, max_agents=8, seed=0)
+    table = np.stack([profile(p) for p in MIX_PROFILES])
+    seen = []
+    for seed in (0, 1):
+        driver = TrafficDriver("mix", lambda obs: np.full(obs.shape[0], 7), seed=seed)
+        for _ in range(2):
+            sim.reset(conditions=cpsim.profile("normal"))
+            driver.assign(sim)
+            co = driver.coplayer_mask(sim)
+            cond = sim.conditions.cpu().numpy()
+            assert co.sum(1).tolist() == [7, 7, 7]
+            for w in range(3):
+                slots = np.flatnonzero(co[w])
+                want = np.arange(slots.size) % 3
+                assert driver.mix_choice[w, slots].tolist() == want.tolist()
+                np.testing.assert_allclose(cond[w, slots], table[want])
+                np.testing.assert_allclose(cond[w, 0], profile("normal"))  # the ego keeps its own
+            seen.append(driver.mix_choice.copy())
+    assert all(np.array_equal(seen[0], x) for x in seen)
 
 
 def test_recurrent_coplayer_state_is_kept_per_slot(scenarios):
@@ -220,7 +252,7 @@ def test_bad_input(scenarios):
     with pytest.raises(ValueError, match="profile"):
         make(scenarios, condition="sporty")
     with pytest.raises(ValueError, match="render_mode"):
-        make(scenarios, render_mode="human")
+        make(scenarios, render_mode="ansi")
     with pytest.raises(ValueError, match="only one"):
         make(scenarios, family="intersection")
     with pytest.raises(ValueError, match="condition applies"):
@@ -307,3 +339,135 @@ def test_drivers_sharing_one_simulator_own_their_worlds(scenarios):
     assert seen["a"] == [n_co, n_co] and seen["b"] == [n_co, n_co]
     a.release()
     assert a.act().sum() == 0
+
+
+@pytest.mark.parametrize("condition", ["cautious", "normal", "aggressive", "cautious-normal"])
+def test_fixed_deployment_condition_keeps_one_goal_test(condition):
+    """A fixed deployment condition changes style fields only: the ego passes its goal at
+    10 m/s (faster than the cautious profile's goal speed of 5 m/s) and the goal counts
+    under every profile, at the same step, with the same task fields in its observation."""
+    from cpsim.conditions import STYLE_MASK
+    from cpsim.envs.drive import DriveEnv
+    from tests.cpsim.scenes import agent, make_scenario
+
+    sc = make_scenario([agent(0.0, 0.0, speed=10.0, goal=(12.0, 0.0))])
+    env = DriveEnv([sc], condition=condition, episode_steps=30, max_agents=2)
+    assert env.sim.config.goal_criterion == "evaluation"
+    obs, _ = env.reset(seed=0)
+    task = env.obs_layout.condition.start + np.flatnonzero(~STYLE_MASK)
+    reference = DriveEnv([sc], condition="normal", episode_steps=30, max_agents=2).reset(seed=0)[0]
+    np.testing.assert_array_equal(obs[task], reference[task])
+    for t in range(1, 31):
+        _, _, terminated, truncated, info = env.step(2 * 3 + 1)  # zero jerks: constant 10 m/s
+        if terminated or truncated:
+            break
+    assert info["outcome"] == "goal" and t == 11  # 1 m per step: within 2 m of x = 12 at x = 11
+
+
+def test_training_condition_keeps_per_agent_task_fields():
+    """condition="train": every agent keeps the goal_radius / goal_speed drawn from p_train."""
+    from cpsim.conditions import STYLE_MASK
+    from cpsim.envs.drive import DriveEnv
+    from tests.cpsim.scenes import agent, make_scenario
+
+    sc = make_scenario([agent(0.0, 0.0, speed=10.0, goal=(12.0, 0.0))])
+    env = DriveEnv([sc], condition="train", episode_steps=30, max_agents=2, seed=0)
+    assert env.sim.config.goal_criterion == "condition"
+    seen = set()
+    for seed in range(4):
+        env.reset(seed=seed)
+        seen.add(tuple(env.sim.conditions.cpu().numpy()[0, 0, ~STYLE_MASK].round(4)))
+    assert len(seen) == 4  # drawn per episode, not the evaluation criterion
+
+
+SCORE_KEYS = {"at_fault_collision", "comfort", "lane_align", "lane_center", "score"}
+
+
+def test_spec_horizon_and_episode_end_scores(scenarios):
+    """spec.max_episode_steps is the fixed 91-step horizon; the last info carries the
+    episode's at-fault flag, comfort, lane metrics and score (cpsim.scoring)."""
+    env = gymnasium.make("cpsim/Drive-v0", scenarios=scenarios, max_agents=6)
+    assert env.spec.max_episode_steps == 91 == env.unwrapped.sim.config.episode_steps
+    short = gymnasium.make("cpsim/Drive-v0", scenarios=scenarios, episode_steps=STEPS, max_agents=6)
+    short.reset(seed=0)
+    done = False
+    while not done:
+        _, _, terminated, truncated, info = short.step(7)
+        done = terminated or truncated
+    assert SCORE_KEYS <= set(info)
+    assert isinstance(info["at_fault_collision"], bool)
+    assert 0.0 <= info["comfort"] <= 1.0 and 0.0 <= info["score"] <= 100.0
+    assert (info["score"] > 0) == (info["outcome"] == "goal" and not info["at_fault_collision"])
+
+
+def test_make_vec_seed_lists_and_single_env_info_keys(scenarios):
+    """reset(seed=[...]) seeds every sub-environment; seed=s seeds sub-env i with s + i, as
+    DriveEnv seeded with s + i; vector infos carry the single env's keys."""
+    from cpsim.envs.drive import DriveEnv
+
+    def venv():
+        return gymnasium.make_vec("cpsim/Drive-v0", num_envs=3, scenarios=scenarios, episode_steps=STEPS,
+                                  max_agents=4, condition="train")
+
+    a, b = venv(), venv()
+    obs_a, info = a.reset(seed=[5, 6, 7])
+    obs_b, _ = b.reset(seed=[5, 99, 7])
+    np.testing.assert_array_equal(obs_a[[0, 2]], obs_b[[0, 2]])
+    assert set(info) >= {"scenario_id", "_scenario_id", "step", "_step"} and list(info["step"]) == [0, 0, 0]
+    obs_c, _ = b.reset(seed=5)  # = [5, 6, 7]
+    np.testing.assert_array_equal(obs_a, obs_c)
+    single = DriveEnv(scenarios, episode_steps=STEPS, max_agents=4, condition="train")
+    np.testing.assert_array_equal(single.reset(seed=6)[0], obs_a[1])
+    with pytest.raises(ValueError, match="one seed per sub-environment"):
+        a.reset(seed=[1, 2])
+    seen_end = False
+    for _ in range(STEPS + 1):
+        _, _, term, trunc, infos = a.step(np.full(3, 7))
+        assert list(infos["scenario_id"]) == a.unwrapped.core.scenario_ids()
+        assert infos["_step"].all() and infos["step"].dtype == np.int64
+        ended = term | trunc
+        if ended.any():
+            seen_end = True
+            for key in SCORE_KEYS:
+                assert np.array_equal(infos[f"_{key}"], ended)
+            assert np.all((infos["score"] >= 0) & (infos["score"] <= 100))
+    assert seen_end
+    a.close()
+    b.close()
+
+
+def test_human_render_mode_runs_headless(scenarios, monkeypatch):
+    """render_mode="human" draws every step into a matplotlib window (none opens under Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    env = make(scenarios, render_mode="human", render_size=(64, 64))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env.reset(seed=0)
+        env.step(7)
+        assert env.render() is None
+    assert env._viewer._image.get_array().shape[:2] == (64, 64)
+    env.close()
+    venv = gymnasium.make_vec("cpsim/Drive-v0", num_envs=2, scenarios=scenarios, episode_steps=STEPS,
+                              max_agents=4, render_mode="human", render_size=(32, 32))
+    venv.reset(seed=0)
+    venv.step(np.full(2, 7))
+    assert venv.render() is None
+    venv.close()
+
+
+def test_policy_regime_accepts_a_checkpoint_path(scenarios, ppo_model, tmp_path):
+    """A checkpoint path works where a model does (so YAML files and command lines can name one)."""
+    path = tmp_path / "coplayer.zip"
+    ppo_model.save(path)
+    env = make(scenarios, regime="normal", coplayer_model=str(path))
+    assert type(env.driver.model).__name__ == "PPO"
+    env.reset(seed=0)
+    env.step(7)
+    with pytest.raises(ValueError, match="coplayer_model"):
+        make(scenarios, regime="normal", coplayer_model=str(tmp_path / "missing.zip"))
+    (tmp_path / "junk.zip").write_text("not a checkpoint")
+    with pytest.raises(ValueError, match="cannot load"):
+        make(scenarios, regime="normal", coplayer_model=str(tmp_path / "junk.zip"))
+
