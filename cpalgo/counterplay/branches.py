@@ -15,7 +15,7 @@ focal agent may get its own draws per branch (ablation), and a caller may pass t
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -88,7 +88,6 @@ class BranchResult:
     focal_alive: th.Tensor | None = None
     actions: np.ndarray | None = None
     xy: np.ndarray | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 class BranchRunner:
