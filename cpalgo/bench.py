@@ -190,23 +190,73 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="also write the JSON summary here")
+    parser.add_argument("--same-learning", type=int, default=0, metavar="GENERATIONS",
+                        help="instead: post-train the anchor with the stock and the fast learner for this many "
+                             "generations each and compare held-out outcome rates")
     args = parser.parse_args(argv)
     for name in ("worlds", "agents", "n_steps", "batch_size", "epochs", "generations"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")
     learners = tuple(x.strip() for x in args.learners.split(",") if x.strip())
+    if args.same_learning > 0:
+        result = compare_learning(args.same_learning, args.worlds, args.agents, args.n_steps, args.batch_size,
+                                  args.epochs, seed=args.seed, anchor=args.anchor)
+        _emit(json.dumps(result, indent=2), args.out)
+        return
     try:
         result = run_learn_benchmark(args.worlds, args.agents, args.n_steps, args.generations, args.batch_size,
                                      args.epochs, args.anchor, learners, args.seed, args.threads)
     except ValueError as exc:
         parser.error(str(exc))
-    text = json.dumps(result, indent=2)
+    _emit(json.dumps(result, indent=2), args.out)
+
+
+def _emit(text: str, out: str | None) -> None:
     print(text)
-    if args.out:
+    if out:
         from cpsim.atomic import atomic_path
 
-        with atomic_path(args.out) as tmp, open(tmp, "w") as fh:
+        with atomic_path(out) as tmp, open(tmp, "w") as fh:
             fh.write(text)
+
+
+
+def compare_learning(generations: int = 18, worlds: int = 32, agents: int = 8, n_steps: int = 64,
+                     batch_size: int = 4096, n_epochs: int = 3, learning_rate: float = 3e-4, tasks: int = 256,
+                     seed: int = 0, anchor: str | None = None) -> dict[str, Any]:
+    """"Same learning": the stock and the fast learner post-train the shipped anchor for the
+    same number of generations (same rollouts: ``generations x n_steps x slots`` slot-steps,
+    same seed), then both are measured on the same held-out tasks.
+
+    Learners: ``stock`` (``RecurrentPPO`` with sb3-contrib's policy) and ``ppo`` (the fast
+    path: ``CounterPlay(counterfactual=False)``, fused LSTM, live slots only). Returns goal /
+    collision / off-road / timeout rates under the normal condition (argmax actions,
+    evaluation goal criterion), the anchor's included, and each learner's wall time.
+    """
+    from cpalgo.cli import _held_out
+    from cpalgo.recipes import shipped_path
+    from cpalgo.selfplay_eval import selfplay_outcomes
+    from cpsim import SelfPlayVecEnv
+
+    path = anchor or str(shipped_path("anchor.zip"))
+    common = dict(n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs, seed=seed, device="cpu",
+                  learning_rate=learning_rate, policy_kwargs=_anchor_network(anchor))
+    held_out = _held_out(tasks)
+    out: dict[str, Any] = {"generations": generations, "slot_steps": generations * n_steps * worlds * agents,
+                           "tasks": tasks, "seed": seed, "learning_rate": learning_rate, "rates": {}, "wall_s": {}}
+    for name in ("stock", "ppo"):
+        env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
+        model = _make(name, env, common)
+        model.set_parameters(path, exact_match=False, device="cpu")
+        if name == "stock":
+            out["rates"]["anchor"] = selfplay_outcomes(model, held_out).as_dict()
+        start = time.perf_counter()
+        for _ in range(generations):
+            # one generation per call: rollouts of the same size whatever learn counts
+            model.learn(n_steps * env.num_envs if name == "stock" else 1, reset_num_timesteps=False)
+        out["wall_s"][name] = time.perf_counter() - start
+        out["rates"][name] = selfplay_outcomes(model, held_out).as_dict()
+    return out
 
 
 if __name__ == "__main__":
