@@ -158,3 +158,20 @@ def test_active_only_sequences_restart_after_gaps_and_keep_every_active_transiti
         m = (b.mask > 0).reshape(b.lstm_states.pi[0].shape[1], -1)
         lengths = m.sum(1)
         assert bool((m[:, 0]).all()) and int(lengths.max()) <= 10
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+def test_fused_policy_on_cuda_equals_the_cpu_result():
+    stock, fused = _pair(enable_critic_lstm=True)
+    obs, starts, h, c = _sequences(n_seq=6, seq_len=9, inside=False)
+    from sb3_contrib.common.recurrent.type_aliases import RNNStates
+
+    states = RNNStates((h, c), (h, c))
+    cpu_values = fused.evaluate_actions(obs, th.zeros(obs.shape[0], dtype=th.long), states, starts)[0]
+    fused = fused.to("cuda")
+    to = lambda x: x.to("cuda")  # noqa: E731
+    gpu_states = RNNStates((to(h), to(c)), (to(h), to(c)))
+    gpu_values = fused.evaluate_actions(to(obs), th.zeros(obs.shape[0], dtype=th.long, device="cuda"),
+                                        gpu_states, to(starts))[0]
+    assert th.allclose(cpu_values, gpu_values.cpu(), atol=1e-4)
