@@ -54,7 +54,8 @@ __all__ = [
 #: Table groups, in table order.
 GROUPS: tuple[str, ...] = ("baseline", "counterplay", "ablation", "panel", "distillation")
 #: Modules imported before the registry is read (each registers its methods on import).
-METHOD_MODULES: list[str] = []
+METHOD_MODULES: list[str] = ["cpalgo.spiced", "cpalgo.cl4ad", "cpalgo.dapo", "cpalgo.vineppo", "cpalgo.plannerrft",
+                             "cpalgo.craft"]  # the adapted baselines (issue 14, docs/baselines.md)
 
 
 @dataclasses.dataclass(frozen=True)
