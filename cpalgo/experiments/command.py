@@ -10,10 +10,9 @@ from typing import Any, Callable
 __all__ = ["add_commands", "cmd_experiment", "cmd_methods", "cmd_main_job"]
 
 
-def _usage_error(message: str) -> Exception:
-    from cpalgo.cli import UsageError
-
-    return UsageError(message)
+def _usage_error(args: argparse.Namespace, message: str) -> None:
+    """One ``error:`` line and exit status 2, as ``cpalgo.cli`` reports usage errors."""
+    args.parser.error(message)
 
 
 def cmd_methods(args: argparse.Namespace) -> int:
@@ -31,7 +30,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         result = run_experiment(args.config, args.out, address=args.address, backend=args.backend,
                                 progress=args.progress)
     except GridError as exc:
-        raise _usage_error(str(exc)) from None
+        _usage_error(args, str(exc))
+        return 2
     return 0 if result.ok else 1
 
 
@@ -45,7 +45,8 @@ def cmd_main_job(args: argparse.Namespace) -> int:
                                torch_threads=args.threads or 1, progress=args.progress,
                                scenarios=getattr(args, "scenarios", None))
     except ValueError as exc:
-        raise _usage_error(str(exc)) from None
+        _usage_error(args, str(exc))
+        return 2
     print(summary["markdown"])
     print(f"written to {args.out} ({summary['wall_s'] / 60:.1f} min)")
     return 0

@@ -107,6 +107,12 @@ def main_job_summary(out: str | os.PathLike, grid: GridConfig) -> dict[str, Any]
                   f"searches, {int(s.get('admissible', 0))} admissible retries, {int(s.get('teachers_chosen', 0))} "
                   f"chosen, {int(s.get('verified', 0))} verified, {int(s.get('teachers', 0))} teachers distilled; "
                   f"branch share of B_post {100 * float(b.get('branch_share', 0)):.1f}%.", ""]
+        files = res.train[("counterplay", grid.seeds[0])].get("search_files") or {}
+        if files.get("figure") and Path(files["figure"]).is_file():  # one verified search, drawn
+            write_bytes_atomic(out / "search.png", Path(files["figure"]).read_bytes())
+            doc["search_figure"] = str(out / "search.png")
+            lines += [f"A verified search: `search.png`; every kept search: `counterplay searches --model "
+                      f"{files['searches']}`.", ""]
     for method, t in doc["training"].items():
         lines.append(f"- {res.label(method)}: B_post {t['b_post']:,} in {t['generations']} generations, "
                      f"{t['wall_s'] / 60:.1f} min")

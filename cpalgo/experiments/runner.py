@@ -120,19 +120,19 @@ class _GridProgress:
         self.start = time.perf_counter()
         self.durations: list[float] = []
 
-    def report(self, key: str, status: str, seconds: float | None, running: int) -> None:
+    def report(self, key: str, status: str, seconds: float | None, running: int, left: int | None = None) -> None:
         self.finished += 1
         self.failed += status == "failed"
         if seconds:
             self.durations.append(seconds)
         elapsed = time.perf_counter() - self.start
-        left = self.total - self.finished
+        left = self.total - self.finished if left is None else left
         eta = ""
         if self.durations and left:
             parallel = max(running, 1)
             eta = f", eta ~{left * (sum(self.durations) / len(self.durations)) / parallel / 60:.0f} min"
         line = (f"[grid] {self.finished}/{self.total} runs finished ({key}: {status}), {running} running, "
-                f"{self.failed} failed, {elapsed / 60:.1f} min{eta}")
+                f"{max(left - running, 0)} queued, {self.failed} failed, {elapsed / 60:.1f} min{eta}")
         write_json_atomic(self.out / "progress.json", {"finished": self.finished, "total": self.total,
                                                        "failed": self.failed, "running": running,
                                                        "elapsed_s": round(elapsed, 1), "last": key})
@@ -172,6 +172,12 @@ def _run_ray(grid: GridConfig, pending: list[RunSpec], out: Path, address: str |
             options["memory"] = res["memory"]
         task = ray.remote(_ray_execute).options(**options)
         refs = {task.remote(grid, spec, str(out), echo is not None): spec for spec in pending}
+        # how many run at once: the cluster's CPUs (or GPUs) over what each task declares
+        total = ray.cluster_resources()
+        slots = int(total.get("CPU", 1) // max(options["num_cpus"], 1e-9)) if options["num_cpus"] else len(refs)
+        if options["num_gpus"]:
+            slots = min(slots, int(total.get("GPU", 0) // options["num_gpus"]))
+        slots = max(slots, 1)
         if echo is not None:
             echo(f"[grid] {len(refs)} Ray tasks submitted ({options['num_cpus']:g} CPU, "
                  f"{options['num_gpus']:g} GPU each) to {address or 'a local Ray instance'}")
@@ -186,7 +192,8 @@ def _run_ray(grid: GridConfig, pending: list[RunSpec], out: Path, address: str |
                                "error": f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"}
                 _store_payload(out, payload)
                 _record(result, payload)
-                progress.report(spec.key, payload["status"], payload.get("seconds"), len(refs))
+                progress.report(spec.key, payload["status"], payload.get("seconds"), min(len(refs), slots),
+                                len(refs))
     finally:
         if started_here:
             ray.shutdown()

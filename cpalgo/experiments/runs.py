@@ -222,13 +222,16 @@ def train_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: Ech
         model.learn(remaining, callback=callback, reset_num_timesteps=resumed_from is None, progress_bar=False)
     wall = wall_before + time.perf_counter() - start
     save_model_atomic(model, folder / "model.zip")
+    from cpalgo.viz import write_search_files  # CounterPlay's kept searches and a verified one's figure
+
+    search_files = write_search_files(model, folder / "model.zip")
     summary = {
         "method": spec.method, "seed": spec.seed, "budget": grid.budget,
         "b_post": int(model.budget.total), "budget_totals": model.budget.as_dict(),
         "generations": int(model.budget.generations), "wall_s": round(wall, 1),
         "resumed_from": resumed_from,
         "totals": {name: dict(getattr(model, name)) for name in _totals_attributes(model)},
-        "torch_threads": grid.torch_threads, "device": grid.device,
+        "torch_threads": grid.torch_threads, "device": grid.device, "search_files": search_files,
     }
     write_json_atomic(folder / "train.json", summary)
     if echo is not None:

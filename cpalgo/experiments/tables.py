@@ -422,7 +422,7 @@ def _targets(res: GridResults, lines: list[str]) -> None:
                 checks.append((f"timeouts repaired, {split}: CounterPlay >= 30%, PPO-Continue <= 10%",
                                f"{a:.1f}% vs {b:.1f}%", a >= 30.0 and b <= 10.0))
     variants = [m for m in ["counterplay", *res.methods_in("ablation")] if res.has(m, dep)]
-    if "counterplay" in variants and "cp-no-style" in variants and len(variants) >= 3:
+    if "counterplay" in variants and "cp-no-style" in variants:
         split = res.splits[0]
         scores = {m: _mean_std(res.values(m, dep, split, "mean", "score"))[0] for m in variants}
         best, worst = max(scores, key=scores.get), min(scores, key=scores.get)

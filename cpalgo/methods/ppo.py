@@ -148,7 +148,9 @@ class RewindPPO(EqualBudgetMixin, CounterPlay):
             e.g. right after ``learn`` reset the env) and ``rewound_transitions`` (live
             agent transitions of rewound continuations, part of ``budget.main``).
         rewind_log: the last 64 rewinds: world, focal slot, failure step, restored step,
-            outcome code, and ``xy`` (A, 2) of the world right after the restore.
+            ``decision`` (index since ``learn`` started of the decision taken from the
+            restored state), outcome code, the world's ``step_count`` and ``xy`` (A, 2)
+            right after the restore.
     """
 
     _RUNTIME_ATTRS: ClassVar[tuple[str, ...]] = CounterPlay._RUNTIME_ATTRS + ("_rw", "rewind_log")
@@ -320,6 +322,7 @@ class RewindPPO(EqualBudgetMixin, CounterPlay):
             name = {2: "collision", 3: "offroad", 4: "timeout"}.get(code, str(code))
             self.rewind_totals[f"rewinds_{name}"] = self.rewind_totals.get(f"rewinds_{name}", 0) + 1
             self.rewind_log.append({"world": int(w), "focal": int(focal), "failure_step": int(t_f),
+                                    "decision": int(st.count),
                                     "restored_step": int(target), "outcome": int(code),
                                     "step_count": int(_np(sim.step_count)[w]), "xy": _np(sim.xy)[w].copy()})
         del self.rewind_log[: -self._LOG_SIZE]

@@ -1,0 +1,288 @@
+"""Experiment grids (cpalgo.experiments): grid errors, resume, tables, the Ray path and the
+main job, on tiny settings (2 worlds x 4 slots, LSTM 16, one or two evaluation tasks)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+import yaml
+
+pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
+
+from cpalgo.evaluate.metrics import OutcomeClass  # noqa: E402
+from cpalgo.experiments.grid import GridError, load_grid  # noqa: E402
+from cpalgo.experiments.runner import ray_available, run_experiment, runs_of  # noqa: E402
+from cpalgo.experiments.runs import run_dir, write_bytes_atomic, write_json_atomic  # noqa: E402
+from cpalgo.experiments.tables import collect_results, markdown_report, repaired, results_csv  # noqa: E402
+from cpalgo.experiments.grid import RunSpec  # noqa: E402
+from cpalgo.methods.base import BudgetedCounterPlay  # noqa: E402
+from cpsim import SelfPlayVecEnv  # noqa: E402
+
+EPISODE = 40
+RECIPE = """cpsim/SelfPlay-v0:
+  policy: 'MlpLstmPolicy'
+  n_envs: 8
+  n_timesteps: 600
+  n_steps: 40
+  batch_size: 64
+  n_epochs: 1
+  learning_rate: cosine(3e-4)
+  policy_kwargs: "dict(lstm_hidden_size=16, enable_critic_lstm=False, net_arch=[32])"
+  env_kwargs:
+    max_agents: 4
+    num_scenarios: 4
+    episode_steps: 40
+"""
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    previous = th.get_num_threads()
+    th.set_num_threads(1)
+    yield
+    th.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict[str, str]:
+    """A tiny anchor (default observation layout, so the evaluator fits it) and its recipe."""
+    folder = tmp_path_factory.mktemp("grid")
+    recipe = folder / "recipe.yml"
+    recipe.write_text(RECIPE)
+    env = SelfPlayVecEnv(num_worlds=2, max_agents=4, num_scenarios=4, seed=0, episode_steps=EPISODE)
+    anchor = folder / "anchor.zip"
+    BudgetedCounterPlay("MlpLstmPolicy", env, counterfactual=False, seed=0, n_steps=EPISODE, batch_size=64,
+                        n_epochs=1, policy_kwargs=dict(lstm_hidden_size=16, enable_critic_lstm=False,
+                                                       net_arch=[32])).save(anchor)
+    return {"anchor": str(anchor), "recipe": str(recipe), "folder": str(folder)}
+
+
+def grid_doc(files, **changes):
+    doc = {"name": "tiny", "anchor": files["anchor"], "recipe": files["recipe"], "budget": 500, "seeds": [0],
+           "methods": ["ppo-continue"], "checkpoint_every": 1,
+           "evaluation": {"tasks": 1, "regimes": ["idm"], "deployments": ["normal"], "max_worlds": 8}}
+    doc.update(changes)
+    return doc
+
+
+# ----------------------------------------------------------------------------- grid errors
+@pytest.mark.parametrize("change, message", [
+    ({"methods": ["ppo-continue", "ppo-nonsense"]}, "methods: unknown method 'ppo-nonsense'"),
+    ({"budget": 0}, "budget: must be > 0"),
+    ({"budget": -5}, "budget: must be > 0"),
+    ({"anchor": "missing/anchor.zip"}, "anchor: no such checkpoint"),
+    ({"evaluation": {"deployments": ["normal", "reckless"]}}, "evaluation.deployments: unknown deployment 'reckless'"),
+    ({"seedz": [0]}, "seedz: unknown key"),
+    ({"evaluation": {"taskz": 3}}, "evaluation.taskz: unknown key"),
+    ({"evaluation": {"regimes": ["idm", "tanks"]}}, "evaluation.regimes: unknown regime 'tanks'"),
+    ({"method_settings": {"ppo-continue": {"rewind_depth": 3}}}, "method_settings.ppo-continue.rewind_depth"),
+    ({"method_settings": {"ppo-rewind": {"rewind_depth": 3}}}, "method_settings.ppo-rewind: is not one of"),
+    ({"overrides": {"learning_rate": "sometimes(3)"}}, "overrides.learning_rate"),
+    ({"env": {"num_wheels": 3}}, "env.num_wheels"),
+    ({"seeds": [0, 0]}, "seeds: lists a seed twice"),
+])
+def test_bad_grids_fail_before_anything_runs_naming_the_key(files, tmp_path, change, message):
+    doc = grid_doc(files)
+    for key, value in change.items():
+        if key == "evaluation":
+            doc["evaluation"] = {**doc["evaluation"], **value}
+        else:
+            doc[key] = value
+    path = tmp_path / "grid.yml"
+    path.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "out"
+    with pytest.raises(GridError) as info:
+        run_experiment(str(path), out, backend="sequential", progress=False)
+    text = str(info.value)
+    assert message in text and text.startswith(str(path)) and "\n" not in text
+    assert not out.exists()  # nothing ran, nothing was written
+
+
+def test_experiment_command_prints_one_error_line_and_exits_2(files, tmp_path):
+    path = tmp_path / "grid.yml"
+    path.write_text(yaml.safe_dump(grid_doc(files, methods=["counterplay", "cp-fixed-99"])))
+    proc = subprocess.run([sys.executable, "-m", "cpalgo.cli", "experiment", "--config", str(path), "--out",
+                           str(tmp_path / "out"), "--backend", "sequential"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 2
+    errors = [line for line in proc.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1 and "methods: unknown method 'cp-fixed-99'" in errors[0]
+    listing = subprocess.run([sys.executable, "-m", "cpalgo.cli", "methods"], capture_output=True, text=True,
+                             timeout=300)
+    assert listing.returncode == 0 and "ppo-rewind" in listing.stdout and "distill-cautious" in listing.stdout
+
+
+def test_shipped_paper_grid_is_valid_and_holds_every_method():
+    from cpalgo.methods import method_names
+
+    grid = load_grid("zoo/experiments/paper_small.yml")
+    assert set(grid.methods) == set(method_names())
+    assert grid.seeds == (0, 1, 2)
+    assert set(grid.evaluation.deployments) == {"normal", "halfway", "aggressive"}
+    assert set(grid.evaluation.deployments["aggressive"]) == {"anchor", "ppo-continue", "distill-aggressive",
+                                                               "distill-cautious", "counterplay"}
+
+
+# ----------------------------------------------------------------------------- resume
+def test_grid_resumes_skips_finished_runs_and_continues_killed_ones(files, tmp_path):
+    out = tmp_path / "out"
+    doc = grid_doc(files, methods=["counterplay"])
+    first = run_experiment(doc, out, backend="sequential", progress=False)
+    assert first.ok and set(first.runs.values()) == {"done"}
+    assert all(s == "done" for s in runs_of(load_grid(doc), out).values())
+    spec = RunSpec("counterplay", 0)
+    folder = run_dir(out, spec)
+    train = json.loads((folder / "train.json").read_text())
+    assert train["b_post"] >= 500 and train["generations"] >= 2
+    checkpoint = json.loads((folder / "checkpoint.json").read_text())
+    assert 0 < checkpoint["budget"]["generations"] < train["generations"]
+    # "kill" the counterplay run after its first checkpoint: only the checkpoint survives
+    for name in ("train.json", "model.zip", "eval_normal.npz"):
+        (folder / name).unlink()
+    anchor_eval = run_dir(out, RunSpec("anchor", None)) / "eval_normal.npz"
+    stamp = anchor_eval.stat().st_mtime_ns
+    assert runs_of(load_grid(doc), out)["counterplay/seed0"] == "resume"
+    second = run_experiment(doc, out, backend="sequential", progress=False)
+    assert second.runs == {"anchor": "skipped", "counterplay/seed0": "done"}
+    assert anchor_eval.stat().st_mtime_ns == stamp  # finished work is not redone
+    resumed = json.loads((folder / "train.json").read_text())
+    b = checkpoint["budget"]
+    assert resumed["resumed_from"] == b["main"] + b["factual"] + b["candidate"] + b["verification"]
+    assert resumed["b_post"] >= 500
+    assert resumed["generations"] > checkpoint["budget"]["generations"]
+    # the tables cover every run
+    rows = (out / "results.csv").read_text().splitlines()
+    assert {r.split(",")[0] for r in rows[1:]} == {"anchor", "counterplay"}
+    assert "Table I" in (out / "tables.md").read_text()
+    # a different grid in the same folder is refused, naming what differs
+    with pytest.raises(GridError, match="budget differs"):
+        run_experiment({**doc, "budget": 900}, out, backend="sequential", progress=False)
+
+
+# ----------------------------------------------------------------------------- tables
+def _columns(split_regimes, goal, af, naf, off, score):
+    n = len(goal)
+    cols = {
+        "split": np.array([s for s, _ in split_regimes]), "regime": np.array([r for _, r in split_regimes]),
+        "task": np.arange(n) % 2, "scenario_id": np.array([f"s{i % 2}" for i in range(n)]),
+        "ego": np.zeros(n, np.int64), "goal": np.array(goal, bool), "at_fault_collision": np.array(af, bool),
+        "non_at_fault_collision": np.array(naf, bool), "offroad": np.array(off, bool),
+        "score": np.array(score, float), "co_player_harm": np.zeros(n, np.int64),
+    }
+    cols["timeout"] = ~(cols["goal"] | cols["at_fault_collision"] | cols["non_at_fault_collision"] | cols["offroad"])
+    cols["outcome_class"] = np.select(
+        [cols["at_fault_collision"], cols["offroad"], cols["goal"], cols["non_at_fault_collision"]],
+        [int(OutcomeClass.AT_FAULT_COLLISION), int(OutcomeClass.OFFROAD), int(OutcomeClass.COMPLETED),
+         int(OutcomeClass.NON_AT_FAULT_COLLISION)], default=int(OutcomeClass.TIMEOUT)).astype(np.int8)
+    return cols
+
+
+def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp_path):
+    import io
+
+    doc = grid_doc(files, methods=["ppo-continue", "counterplay", "cp-no-style"], seeds=[0, 1],
+                   evaluation={"tasks": 2, "splits": ["interactive"], "regimes": ["idm", "replay"],
+                               "deployments": {"normal": "all", "aggressive": ["anchor", "counterplay"]}})
+    grid = load_grid(doc)
+    out = tmp_path / "out"
+    sr = [("interactive", "idm")] * 2 + [("interactive", "replay")] * 2
+
+    def put(method, seed, dep, cols):
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **cols)
+        write_bytes_atomic(run_dir(out, RunSpec(method, seed)) / f"eval_{dep}.npz", buf.getvalue())
+
+    # anchor: task-regimes 0, 1 time out, 2 completes, 3 collides at fault
+    anchor = _columns(sr, [0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 60, 0])
+    put("anchor", None, "normal", anchor)
+    put("anchor", None, "aggressive", anchor)
+    # counterplay repairs both timeouts (seed 0) or one (seed 1), keeps the completion
+    put("counterplay", 0, "normal", _columns(sr, [1, 1, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0], [80, 80, 80, 0]))
+    put("counterplay", 1, "normal", _columns(sr, [1, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1], [70, 0, 70, 0]))
+    put("counterplay", 0, "aggressive", _columns(sr, [1, 1, 1, 1], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [90] * 4))
+    # ppo-continue repairs nothing; one of its completions hits someone (not a repair, no score)
+    for seed in (0, 1):
+        put("ppo-continue", seed, "normal", _columns(sr, [0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]))
+        put("cp-no-style", seed, "normal", _columns(sr, [0, 1, 1, 0], [0] * 4, [0] * 4, [0] * 4, [0, 10, 10, 0]))
+    res = collect_results(out, grid)
+    assert res.values("counterplay", "normal", "interactive", "mean", "score") == [80.0 * 3 / 4, 70.0 * 2 / 4]
+    assert not repaired(res.evals[("ppo-continue", 0, "normal")])[2]  # a non-at-fault collision is no repair
+    md = markdown_report(res)
+    # Table I: per regime (idm: seeds 80 and 35 -> 57.5 ± 31.8; replay: 40 and 35) and the difference row
+    assert "| Anchor | 0.0 | 30.0 | 15.0 |" in md
+    assert "| CounterPlay | 57.5 ± 31.8 | 37.5 ± 3.5 | 47.5 ± 17.7 |" in md
+    assert "| CounterPlay − PPO-Continue | +57.5 | +37.5 | +47.5 |" in md
+    # Table III: anchor shares; CounterPlay repairs 100% / 50% of the timeouts, PPO-Continue 0%
+    assert "| Anchor (share) | 25.0 (1) | 50.0 (2) | 25.0 (1) | 0.0 (0) | 0.0 (0) |" in md
+    assert "| CounterPlay | 100.0 ± 0.0 | 75.0 ± 35.4 | 0.0 ± 0.0 | - | - |" in md
+    assert "| PPO-Continue | 0.0 ± 0.0 | 0.0 ± 0.0 | 0.0 ± 0.0 | - | - |" in md
+    # Table II lists the ablation; Table IV the aggressive deployment (counterplay: one seed there)
+    assert "| No change in driving style | value | - | yes | yes | 5.00 ± 0.00 |" in md
+    assert "| CounterPlay | 47.50 ± 17.68 | 12.50 ± 17.68 | 90.00 | 0.00 |" in md
+    # targets: measured and judged
+    assert "| CounterPlay − PPO-Continue, interactive: >= +5 points | +47.50" in md
+    assert "timeouts repaired, interactive: CounterPlay >= 30%, PPO-Continue <= 10% | 75.0% vs 0.0% | yes |" in md
+    assert "full method highest, cp-no-style lowest of the variants | highest counterplay (47.50), lowest cp-no-style" in md
+    csv_rows = results_csv(res).splitlines()
+    assert csv_rows[0].startswith("method,seed,split,regime,deployment,n_tasks,score,completion_pct")
+    assert "counterplay,1,interactive,replay,normal,2,35.0000,50.0000,0.0000,0.0000,50.0000,0.0000,0.0000" in csv_rows
+
+
+# ----------------------------------------------------------------------------- Ray
+@pytest.mark.skipif(not ray_available(), reason="Ray is not installed (extra [cluster])")
+def test_ray_backend_runs_each_run_as_a_task_and_writes_every_result(files, tmp_path):
+    out = tmp_path / "out"
+    doc = grid_doc(files, methods=["ppo-opponent"], seeds=[1], budget=200)
+    result = run_experiment(doc, out, backend="ray", progress=False)
+    assert result.backend == "ray" and result.ok, result.errors
+    assert result.runs == {"anchor": "done", "ppo-opponent/seed1": "done"}
+    for seed in (1,):
+        folder = run_dir(out, RunSpec("ppo-opponent", seed))
+        assert (folder / "eval_normal.npz").is_file() and (folder / "model.zip").is_file()
+        assert json.loads((folder / "train.json").read_text())["b_post"] >= 200
+    rows = (out / "results.csv").read_text().splitlines()[1:]
+    assert {(r.split(",")[0], r.split(",")[1]) for r in rows} == {("anchor", ""), ("ppo-opponent", "1")}
+    # the same grid again: everything is skipped without starting Ray work
+    again = run_experiment(doc, out, backend="ray", progress=False)
+    assert set(again.runs.values()) == {"skipped"}
+
+
+def test_backend_errors(files, tmp_path):
+    doc = grid_doc(files)
+    with pytest.raises(GridError, match="backend: expected one of"):
+        run_experiment(doc, tmp_path / "a", backend="spark", progress=False)
+    with pytest.raises(GridError, match="address: a cluster address needs the Ray backend"):
+        run_experiment(doc, tmp_path / "b", backend="sequential", address="auto", progress=False)
+
+
+# ----------------------------------------------------------------------------- main job
+def test_main_job_compares_both_methods_with_the_anchor_on_the_same_tasks(files, tmp_path):
+    from cpalgo.experiments.mainjob import run_main_job
+
+    out = tmp_path / "main"
+    summary = run_main_job(anchor=files["anchor"], config=files["recipe"], out=str(out), budget=200, seed=3,
+                           eval_tasks=1, progress=False)
+    assert set(summary["policies"]) == {"anchor", "ppo-continue", "counterplay"}
+    for policy in summary["policies"].values():
+        assert set(policy) == {"interactive", "random"}
+        assert set(policy["interactive"]) == {"score", "completion", "at_fault_collision", "timeout"}
+    train = summary["training"]
+    assert train["ppo-continue"]["b_post"] >= 200 and train["counterplay"]["b_post"] >= 200
+    assert set(summary["repair"]) == {"ppo-continue", "counterplay"}
+    grid = json.loads((out / "grid.json").read_text())["grid"]
+    assert grid["seeds"] == [3] and grid["methods"] == ["ppo-continue", "counterplay"]
+    assert len(grid["evaluation"]["regimes"]) == 8  # every traffic regime
+    ev = {m: np.load(run_dir(out, RunSpec(m, None if m == "anchor" else 3)) / "eval_normal.npz")
+          for m in ("anchor", "ppo-continue", "counterplay")}
+    for m in ("ppo-continue", "counterplay"):  # the same held-out task-regimes for all three
+        assert np.array_equal(ev[m]["scenario_id"], ev["anchor"]["scenario_id"])
+        assert np.array_equal(ev[m]["regime"], ev["anchor"]["regime"])
+    md = (out / "summary.md").read_text()
+    assert "PPO-Continue" in md and "CounterPlay" in md and "Failure repair" in md
