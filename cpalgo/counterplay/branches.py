@@ -25,12 +25,11 @@ from sb3_contrib.common.recurrent.type_aliases import RNNStates
 
 from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits, put_states, take_states
 from cpalgo.counterplay.search import BranchOutcome
+from cpsim.config import Outcome
 
 __all__ = ["BranchJob", "BranchResult", "BranchRunner"]
 
-#: Outcome code of a reached goal (cpsim.Outcome.GOAL); kept here so this module does not
-#: import the simulator.
-OUTCOME_GOAL = 1
+OUTCOME_GOAL = int(Outcome.GOAL)
 
 
 @dataclass

@@ -43,6 +43,8 @@ import numpy as np
 from cpalgo.evaluate import metrics as M
 from cpalgo.recipes import resolve_path, shipped_path
 from cpsim.conditions import deployment_condition
+from cpsim.config import Controller, Outcome
+from cpsim.scenario.datatypes import AgentType
 
 #: BehaviorBench's eight traffic regimes, in the column order of the tables.
 REGIMES: tuple[str, ...] = ("idm", "selfplay", "bc", "replay", "aggressive", "normal", "cautious", "mix")
@@ -54,16 +56,17 @@ REGIME_ALIASES: dict[str, str] = {
 }
 SPLITS: tuple[str, ...] = ("interactive", "random")
 #: Ego "policies" that are built-in simulator controllers (baselines, sanity checks).
-EGO_CONTROLLERS: dict[str, int] = {"replay": 1, "expert": 1, "idm": 2, "static": 3}
+EGO_CONTROLLERS: dict[str, int] = {"replay": int(Controller.REPLAY), "expert": int(Controller.REPLAY),
+                                   "idm": int(Controller.IDM), "static": int(Controller.STATIC)}
 #: Default shipped BC traffic model (inside the package, ``zoo/bc_traffic.pt`` in a clone).
 DEFAULT_BC_PATH = shipped_path("bc_traffic.pt")
 #: The shipped reward-conditioned self-play anchor: default co-player of the policy regimes.
 DEFAULT_TRAFFIC_PATH = shipped_path("anchor.zip")
 
-# cpsim.config enum values (contract in docs/ARCHITECTURE.md)
-_POLICY = 0
-_RUNNING, _GOAL, _COLLISION, _OFFROAD, _TIMEOUT = 0, 1, 2, 3, 4
-_VEHICLE = 0
+_POLICY = int(Controller.POLICY)
+_RUNNING, _GOAL, _COLLISION, _OFFROAD, _TIMEOUT = (int(o) for o in (Outcome.RUNNING, Outcome.GOAL, Outcome.COLLISION,
+                                                                   Outcome.OFFROAD, Outcome.TIMEOUT))
+_VEHICLE = int(AgentType.VEHICLE)
 
 
 def resolve_regime(name: str) -> str:

@@ -17,6 +17,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from cpsim.conditions import NUM_CONDITION_FIELDS, deployment_condition, sample_conditions
+from cpsim.config import Controller, Outcome
 from cpsim.envs.regimes import TrafficDriver
 from cpsim.envs.viewer import HumanViewer, tile
 from cpsim.scoring import episode_scores
@@ -24,8 +25,8 @@ from cpsim.envs.selfplay import (OUTCOME_NAMES, _np, copy_obs, make_simulator, o
                                  resolve_scenarios)
 
 EGO_SLOT = 0
-_POLICY = 0
-_TIMEOUT = 4
+_POLICY = int(Controller.POLICY)
+_TIMEOUT = int(Outcome.TIMEOUT)
 #: the horizon ``cpsim/Drive-v0`` is registered with (``spec.max_episode_steps``):
 #: SimConfig's default and largest ``episode_steps`` (the logs' 91 steps)
 HORIZON = 91

@@ -12,7 +12,8 @@ import math
 
 import warp as wp
 
-from cpsim.config import DYNAMICS_MODELS, EVENT_RULES, GOAL_CRITERIA, SimConfig
+from cpsim.config import DYNAMICS_MODELS, EVENT_RULES, GOAL_CRITERIA, Controller, Outcome, SimConfig
+from cpsim.scenario.datatypes import AgentType
 
 #: The single Warp module every simulator kernel belongs to.
 KERNEL_MODULE = "cpsim.kernels"
@@ -20,22 +21,24 @@ KERNEL_MODULE = "cpsim.kernels"
 KERNEL_OPTIONS = {"enable_backward": False}
 wp.set_module_options(KERNEL_OPTIONS, module=KERNEL_MODULE)
 
-# Controller / outcome / type codes as Warp constants (mirror cpsim.config / datatypes).
-POLICY = wp.constant(0)
-REPLAY = wp.constant(1)
-IDM = wp.constant(2)
-STATIC = wp.constant(3)
-NO_CONTROLLER = wp.constant(4)
-RUNNING = wp.constant(0)
-GOAL = wp.constant(1)
-COLLISION = wp.constant(2)
-OFFROAD = wp.constant(3)
-TIMEOUT = wp.constant(4)
-VEHICLE = wp.constant(0)
+# Controller / outcome / type / event-rule codes as Warp constants, generated from the
+# Python enums so the two can never disagree (one source: cpsim.config / datatypes).
+POLICY = wp.constant(int(Controller.POLICY))
+REPLAY = wp.constant(int(Controller.REPLAY))
+IDM = wp.constant(int(Controller.IDM))
+STATIC = wp.constant(int(Controller.STATIC))
+NO_CONTROLLER = wp.constant(int(Controller.NONE))
+RUNNING = wp.constant(int(Outcome.RUNNING))
+GOAL = wp.constant(int(Outcome.GOAL))
+COLLISION = wp.constant(int(Outcome.COLLISION))
+OFFROAD = wp.constant(int(Outcome.OFFROAD))
+TIMEOUT = wp.constant(int(Outcome.TIMEOUT))
+VEHICLE = wp.constant(int(AgentType.VEHICLE))
+#: logs hold 91 states (WOMD): replayed agents keep their last logged state past it
 LAST_LOG_STEP = wp.constant(90)
-RULE_REMOVE = wp.constant(0)
-RULE_STOP = wp.constant(1)
-RULE_IGNORE = wp.constant(2)
+RULE_REMOVE = wp.constant(EVENT_RULES["remove"])
+RULE_STOP = wp.constant(EVENT_RULES["stop"])
+RULE_IGNORE = wp.constant(EVENT_RULES["ignore"])
 
 
 @wp.struct
