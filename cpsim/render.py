@@ -519,6 +519,31 @@ _MPL_ROAD_STYLE = {
 }
 
 
+def plot_roads(ax: Any, road_points: np.ndarray, road_offsets: np.ndarray, road_types: np.ndarray) -> None:
+    """Draw a road network (a Scenario's ``road_points`` / ``road_offsets`` / ``road_types``)
+    on a matplotlib Axes, in :func:`plot_scenario`'s style: background, lanes (dashed
+    centrelines), road lines, road edges, crosswalks (filled), stop signs."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.patches import Circle, Polygon
+
+    points = np.asarray(road_points)
+    offsets = np.asarray(road_offsets)
+    types = np.asarray(road_types)
+
+    def road(r: int) -> np.ndarray:
+        return points[int(offsets[r]):int(offsets[r + 1])]
+
+    ax.set_facecolor("#e2e8dc")
+    for rtype, style in _MPL_ROAD_STYLE.items():
+        lines = [road(r) for r in np.flatnonzero(types == rtype) if road(r).shape[0] > 1]
+        if lines:
+            ax.add_collection(LineCollection(lines, **style))
+    for r in np.flatnonzero(types == RoadType.CROSSWALK):
+        ax.add_patch(Polygon(road(r), closed=True, fc="#cfcfd4", ec="#a0a0a8", lw=0.5, zorder=1.5))
+    for r in np.flatnonzero(types == RoadType.STOP_SIGN):
+        ax.add_patch(Circle(road(r).mean(axis=0), 0.8, color="#c81e1e", zorder=4))
+
+
 def plot_scenario(scenario: Scenario, ax: Any = None, t: int = 0, *, show_logs: bool = True,
                   show_goals: bool = True, figsize: tuple[float, float] = (7.0, 7.0)) -> Any:
     """Static matplotlib drawing of ``scenario`` at logged step ``t``; returns the Axes.
@@ -543,18 +568,7 @@ def plot_scenario(scenario: Scenario, ax: Any = None, t: int = 0, *, show_logs: 
         fig = Figure(figsize=figsize, dpi=100)
         FigureCanvasAgg(fig)
         ax = fig.add_subplot(1, 1, 1)
-    ax.set_facecolor("#e2e8dc")
-    for rtype, style in _MPL_ROAD_STYLE.items():
-        ids = np.flatnonzero(scenario.road_types == rtype)
-        lines = [scenario.road(int(r)) for r in ids if scenario.road(int(r)).shape[0] > 1]
-        if lines:
-            ax.add_collection(LineCollection(lines, **style))
-    for r in np.flatnonzero(scenario.road_types == RoadType.CROSSWALK):
-        ax.add_patch(Polygon(scenario.road(int(r)), closed=True, fc="#cfcfd4", ec="#a0a0a8",
-                             lw=0.5, zorder=1.5))
-    for r in np.flatnonzero(scenario.road_types == RoadType.STOP_SIGN):
-        p = scenario.road(int(r)).mean(axis=0)
-        ax.add_patch(Circle(p, 0.8, color="#c81e1e", zorder=4))
+    plot_roads(ax, scenario.road_points, scenario.road_offsets, scenario.road_types)
 
     ctrl = scenario.controllable
     ego = scenario.ego_index
@@ -660,6 +674,6 @@ def record_episode(env: Any, path: str | os.PathLike | None = None,
 
 
 __all__ = [
-    "TopDownRenderer", "render_frame", "plot_scenario", "write_video", "record_episode",
+    "TopDownRenderer", "render_frame", "plot_roads", "plot_scenario", "write_video", "record_episode",
     "agent_colors", "CAMERAS", "GOAL_MODES", "VIDEO_FORMATS",
 ]

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -391,7 +391,8 @@ def build_record(req: Any, res: Any, *, panel: Sequence[str], scenario: Any, win
         chosen=None if chosen is None else int(chosen), verified=None if verified is None else bool(verified),
         goal=root["goal"].astype(np.float32), size=root["size"].astype(np.float32),
         agent_type=root["agent_type"].astype(np.int32), controller=root["controller"].astype(np.int32),
-        road_points=np.asarray(scenario.road_points, np.float32), road_offsets=np.asarray(scenario.road_offsets, np.int64),
+        road_points=np.asarray(scenario.road_points, np.float32),
+        road_offsets=np.asarray(scenario.road_offsets, np.int64),
         road_types=np.asarray(scenario.road_types, np.int8),
         goal_radius=float(np.asarray(req.conditions)[int(req.focal), 0]),
     )
