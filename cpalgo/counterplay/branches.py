@@ -142,30 +142,8 @@ class BranchRunner:
         if t_max <= 0:
             raise ValueError("jobs: every root must lie before its deadline")
 
-        # --- restore roots: one call per distinct snapshot object
-        by_snapshot: dict[int, tuple[Any, list[int], list[int]]] = {}
-        for k, job in enumerate(jobs):
-            entry = by_snapshot.setdefault(id(job.snapshot), (job.snapshot, [], []))
-            for b in range(job.num_branches):
-                entry[1].append(int(offsets[k] + b))
-                entry[2].append(int(job.snapshot_row))
-        for snapshot, worlds, rows in by_snapshot.values():
-            sim.restore(snapshot, np.asarray(worlds, np.int64), source=np.asarray(rows, np.int64))
-        used = np.arange(n_used)
-        sim.set_conditions(np.concatenate([j.conditions for j in jobs]).astype(np.float32), worlds=used)
-
-        # --- memories (layers, n_worlds * A, hidden); unused worlds keep zeros
-        layers, _, hidden = jobs[0].pi_state[0].shape
-
-        def memory(which: str, part: int) -> th.Tensor:
-            m = th.zeros(layers, n_worlds, a, hidden, device=device)
-            for k, job in enumerate(jobs):
-                state = getattr(job, which)[part].to(device)
-                m[:, offsets[k]:offsets[k + 1]] = state[:, None]
-            return m.reshape(layers, n_worlds * a, hidden)
-
-        states = RNNStates((memory("pi_state", 0), memory("pi_state", 1)),
-                           (memory("vf_state", 0), memory("vf_state", 1)))
+        self._restore(sim, jobs, offsets)
+        states = self._memories(jobs, offsets, n_worlds, a)
         starts = th.zeros(n_worlds * a, device=device)
 
         # --- per-world bookkeeping
@@ -227,17 +205,7 @@ class BranchRunner:
                 if record:
                     f_logits = th.zeros(n_used, t_max, n_actions, device=device)
 
-            # uniforms: one per agent per decision, shared by the branches of a job
-            u_job = th.rand(len(jobs), a, generator=self.generator).to(device)
-            for k, draws in given:
-                if t < draws.shape[0]:
-                    u_job[k] = th.as_tensor(draws[t], device=device, dtype=u_job.dtype)
-            u = u_job[world_job_t]  # (n_used, A)
-            if indep_idx.numel():
-                fresh = th.rand(int(indep_idx.numel()), generator=self.generator).to(device)
-                u[indep_idx, focal_t[indep_idx]] = fresh
-            if n_worlds > n_used:  # spare worlds of the grown simulator: any action will do
-                u = th.cat([u, th.zeros(n_worlds - n_used, a, device=device)])
+            u = self._uniforms(t, len(jobs), a, given, world_job_t, indep_idx, focal_t, n_worlds)
             actions = inverse_cdf_sample(logits, u.reshape(-1)).reshape(n_worlds, a)
 
             deciding_used = deciding[:n_used]
@@ -258,7 +226,62 @@ class BranchRunner:
         xy = xy.cpu().numpy()
         transitions = transitions.cpu().numpy().astype(np.int64)
 
-        # --- outcomes
+        return self._results(sim, jobs, offsets, transitions, f_obs, f_logits, f_actions, f_rewards, f_alive,
+                             all_actions, xy, record)
+
+    # ------------------------------------------------------------------ parts of run
+    def _restore(self, sim: Any, jobs: Sequence[BranchJob], offsets: np.ndarray) -> None:
+        """Every job's root into its branch worlds (one restore per distinct snapshot) and
+        each branch world's conditions."""
+        by_snapshot: dict[int, tuple[Any, list[int], list[int]]] = {}
+        for k, job in enumerate(jobs):
+            entry = by_snapshot.setdefault(id(job.snapshot), (job.snapshot, [], []))
+            for b in range(job.num_branches):
+                entry[1].append(int(offsets[k] + b))
+                entry[2].append(int(job.snapshot_row))
+        for snapshot, worlds, rows in by_snapshot.values():
+            sim.restore(snapshot, np.asarray(worlds, np.int64), source=np.asarray(rows, np.int64))
+        used = np.arange(int(offsets[-1]))
+        sim.set_conditions(np.concatenate([j.conditions for j in jobs]).astype(np.float32), worlds=used)
+
+    def _memories(self, jobs: Sequence[BranchJob], offsets: np.ndarray, n_worlds: int, a: int) -> RNNStates:
+        """Actor and critic (h, c), each (layers, n_worlds * A, hidden): every branch world
+        starts from its job's root memory; spare worlds keep zeros."""
+        device = self.policy.device
+        layers, _, hidden = jobs[0].pi_state[0].shape
+
+        def memory(which: str, part: int) -> th.Tensor:
+            m = th.zeros(layers, n_worlds, a, hidden, device=device)
+            for k, job in enumerate(jobs):
+                state = getattr(job, which)[part].to(device)
+                m[:, offsets[k]:offsets[k + 1]] = state[:, None]
+            return m.reshape(layers, n_worlds * a, hidden)
+
+        return RNNStates((memory("pi_state", 0), memory("pi_state", 1)), (memory("vf_state", 0), memory("vf_state", 1)))
+
+    def _uniforms(self, t: int, n_jobs: int, a: int, given: list[tuple[int, np.ndarray]], world_job: th.Tensor,
+                  independent: th.Tensor, focal: th.Tensor, n_worlds: int) -> th.Tensor:
+        """(n_worlds, A) draws of decision ``t``: one per agent, shared by the branches of a
+        job (shared randomness); replayed draws where a job brings them; fresh focal draws
+        for the branches in ``independent``; zeros for spare worlds."""
+        device = self.policy.device
+        u_job = th.rand(n_jobs, a, generator=self.generator).to(device)
+        for k, draws in given:
+            if t < draws.shape[0]:
+                u_job[k] = th.as_tensor(draws[t], device=device, dtype=u_job.dtype)
+        u = u_job[world_job]  # (n_used, A)
+        if independent.numel():
+            fresh = th.rand(int(independent.numel()), generator=self.generator).to(device)
+            u[independent, focal[independent]] = fresh
+        if n_worlds > u.shape[0]:  # spare worlds of the grown simulator: any action will do
+            u = th.cat([u, th.zeros(n_worlds - u.shape[0], a, device=device)])
+        return u
+
+    def _results(self, sim: Any, jobs: Sequence[BranchJob], offsets: np.ndarray, transitions: np.ndarray,
+                 f_obs: th.Tensor | None, f_logits: th.Tensor | None, f_actions: th.Tensor, f_rewards: th.Tensor,
+                 f_alive: th.Tensor, all_actions: np.ndarray, xy: np.ndarray, record: bool) -> list[BranchResult]:
+        """One :class:`BranchResult` per job from the branch worlds' final state."""
+        n_used = int(offsets[-1])
         outcome = sim.outcome.detach().cpu().numpy()[:n_used]
         metrics = {k: v.detach().cpu().numpy()[:n_used] for k, v in sim.metrics.items()}
         present = sim.agent_index.detach().cpu().numpy()[:n_used] >= 0 if hasattr(sim.agent_index, "detach") \
