@@ -1,14 +1,22 @@
 """The ``counterplay`` command.
 
-Sub-commands::
+Sub-commands (``counterplay SUB-COMMAND --help`` lists each one's options and defaults):
 
-    counterplay run            post-train the shipped anchor with CounterPlay on procedural
-                               scenarios, evaluate before/after, write checkpoint + summary
-                               (the README's main job)
-    counterplay post-train     the same with every option exposed
-    counterplay train-anchor   train the reward-conditioned self-play anchor (RecurrentPPO)
-    counterplay outcomes       self-play outcome rates of a checkpoint on held-out tasks
-    counterplay pool           generate and summarise a procedural scenario pool
+* ``run``: post-train the shipped anchor with PPO-Continue and with CounterPlay at the same
+  budget and seed, evaluate the anchor and both on the same held-out tasks, write the
+  checkpoints, tables and a summary (the README's main job; :mod:`cpalgo.experiments.mainjob`);
+* ``post-train``: CounterPlay alone, with every option exposed;
+* ``experiment``: a grid of methods x seeds on Ray or in-process, with the paper's tables;
+* ``methods``: the registered post-training methods, one line each;
+* ``train-anchor``: train the reward-conditioned self-play anchor (RecurrentPPO);
+* ``outcomes``: self-play outcome rates of a checkpoint on held-out tasks;
+* ``pool``: generate and summarise a procedural scenario pool;
+* ``searches``: list the searches a CounterPlay run kept; draw one (PNG / GIF).
+
+Paths spelled ``zoo/NAME`` (the README's) name the files shipped inside the package when
+no such file exists (:func:`cpalgo.recipes.resolve_path`). A wrong argument or a file that
+is missing or does not fit ends the command with one ``error:`` line and exit status 2,
+as argparse does for its own errors.
 """
 
 from __future__ import annotations
@@ -16,42 +24,102 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import math
 import os
 import sys
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from cpalgo.recipes import ZOO_DIR, load_recipe
+from cpalgo.recipes import Recipe, import_string, load_recipe, resolve_path
 
-DEFAULT_ANCHOR = ZOO_DIR / "anchor.zip"
-DEFAULT_ANCHOR_CONFIG = ZOO_DIR / "anchor.yml"
-DEFAULT_POST_CONFIG = ZOO_DIR / "counterplay.yml"
+#: Defaults, spelled as the README spells them (they resolve to the shipped files).
+DEFAULT_ANCHOR = "zoo/anchor.zip"
+DEFAULT_ANCHOR_CONFIG = "zoo/anchor.yml"
+DEFAULT_POST_CONFIG = "zoo/counterplay.yml"
 #: Held-out tasks come from the evaluation seed range (disjoint from training by seed).
 HELD_OUT_SEED = 0
 
 
+class UsageError(Exception):
+    """A wrong argument, or a file that is missing or does not fit: one line, exit status 2."""
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("counterplay")
+    except PackageNotFoundError:  # running from a source tree that is not installed
+        import cpsim
+
+        return cpsim.__version__
+
+
+# ----------------------------------------------------------------------------- argument types
+def _whole(text: str, minimum: int) -> int:
+    try:
+        value = float(text)  # accepts 200000 and 2e5
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not math.isfinite(value) or not value.is_integer():
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}")
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {text}")
+    return int(value)
+
+
 def _positive_int(text: str) -> int:
-    value = int(float(text))
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
+    return _whole(text, 1)
 
 
 def _non_negative_int(text: str) -> int:
-    value = int(float(text))
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
+    return _whole(text, 0)
 
 
 def _unit_float(text: str) -> float:
-    value = float(text)
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
     return value
 
 
+def _condition(text: str) -> str | list[float]:
+    """A profile name or 10 comma-separated raw values, validated."""
+    from cpsim.conditions import resolve_condition
+
+    spec: str | list[float] = text
+    if "," in text:
+        try:
+            spec = [float(v) for v in text.split(",")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a profile name or 10 numbers, got {text!r}") from None
+    try:
+        resolve_condition(spec, "condition")
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("condition: ")) from None
+    return spec
+
+
+def _existing_file(text: str) -> str:
+    path = resolve_path(text)
+    if not os.path.isfile(path):
+        raise argparse.ArgumentTypeError(f"no such file {text!r}")
+    return path
+
+
+def _recipe_file(text: str) -> str:
+    """A zoo YAML recipe that parses (the path, resolved)."""
+    try:
+        return load_recipe(text).path
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("config: ")) from None
+
+
+# ----------------------------------------------------------------------------- helpers
 def _set_threads(threads: int | None) -> None:
     import torch
 
@@ -59,17 +127,33 @@ def _set_threads(threads: int | None) -> None:
         torch.set_num_threads(threads)
 
 
-def _make_env(recipe: Any, seed: int, num_worlds: int | None = None, **overrides: Any) -> Any:
+def _make_env(recipe: Recipe, seed: int, num_worlds: int | None = None, **overrides: Any) -> Any:
+    """The recipe's self-play env with its ``vec_env_wrapper`` list (a ``VecMonitor`` first
+    when the list has none: it gives SB3 its episode statistics)."""
     import cpsim
+    from stable_baselines3.common.vec_env import VecMonitor
 
+    if recipe.zoo_only:
+        raise UsageError(f"--config: {sorted(recipe.zoo_only)} in {recipe.path} are applied by rl-zoo3 only "
+                         "(python -m cpalgo.zoo train); remove them for the counterplay command")
+    if recipe.normalize is not None:
+        raise UsageError(f"--config: normalize in {recipe.path}: the counterplay command evaluates and "
+                         "post-trains on raw observations (as the shipped anchor was trained); train with "
+                         "normalisation through python -m cpalgo.zoo train")
+    try:
+        wrappers = [(import_string(name), kwargs) for name, kwargs in recipe.vec_env_wrappers]
+    except ValueError as exc:
+        raise UsageError(f"--config: vec_env_wrapper in {recipe.path}: {exc}") from None
     kwargs = dict(recipe.env_kwargs)
     kwargs.update(overrides)
     kwargs.setdefault("seed", seed)
-    from stable_baselines3.common.vec_env import VecMonitor
-
-    # VecMonitor gives SB3 its episode statistics (rollout/ep_rew_mean); attribute access
-    # (env.sim, env.obs_layout) passes through the wrapper.
-    return VecMonitor(cpsim.SelfPlayVecEnv(num_worlds=num_worlds or recipe.num_worlds, **kwargs))
+    env = cpsim.SelfPlayVecEnv(num_worlds=num_worlds or recipe.num_worlds, **kwargs)
+    # attribute access (env.sim, env.obs_layout) passes through the wrappers
+    if not any(isinstance(cls, type) and issubclass(cls, VecMonitor) for cls, _ in wrappers):
+        env = VecMonitor(env)
+    for cls, kw in wrappers:
+        env = cls(env, **kw)
+    return env
 
 
 @functools.lru_cache(maxsize=4)
@@ -80,10 +164,17 @@ def _held_out(n: int) -> tuple:
     return tuple(eval_pool(n, seed=HELD_OUT_SEED))
 
 
-def _outcomes(model: Any, n_tasks: int, max_agents: int, condition: str = "normal") -> Any:
+def _outcomes(model: Any, n_tasks: int, max_agents: int, condition: Any = "normal") -> Any:
     from cpalgo.selfplay_eval import selfplay_outcomes
 
     return selfplay_outcomes(model, _held_out(n_tasks), condition=condition, max_agents=max_agents)
+
+
+def _write_json(path: Path, doc: dict[str, Any]) -> None:
+    from cpalgo.evaluate.tables import write_text_atomic
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, json.dumps(doc, indent=2, default=str) + "\n")
 
 
 # ----------------------------------------------------------------------------- pool
@@ -94,7 +185,7 @@ def cmd_pool(args: argparse.Namespace) -> int:
     if families:
         unknown = sorted(set(families) - set(FAMILIES))
         if unknown:
-            raise SystemExit(f"--families: unknown {unknown}; accepted: {list(FAMILIES)}")
+            raise UsageError(f"--families: unknown {unknown}; accepted: {list(FAMILIES)}")
     t0 = time.perf_counter()
     scenarios = pool(args.n, args.seed, families=families)
     dt = time.perf_counter() - t0
@@ -124,9 +215,10 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     model = RecurrentPPO(recipe.policy, env, seed=args.seed, verbose=args.verbose,
                          tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
     if args.init:  # continue from an earlier anchor (same recipe network)
-        if not Path(args.init).is_file():
-            raise SystemExit(f"--init: no such checkpoint {args.init!r}")
-        model.set_parameters(args.init, exact_match=True)
+        try:
+            model.set_parameters(args.init, exact_match=True)
+        except Exception as exc:  # noqa: BLE001 - reported with the file name
+            raise UsageError(f"--init: {args.init} does not match the recipe's policy ({exc})") from None
     imitation = []
     t0 = time.perf_counter()
     if args.imitate:  # DAgger warm start from the tracking expert before PPO
@@ -154,46 +246,50 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
               "normal_condition_outcomes": rates.as_dict()}
     if imitation:
         report["imitation_rounds"] = imitation
-    from cpsim.atomic import atomic_path
-
-    with atomic_path(str(out.with_suffix("")) + ".json") as tmp:
-        Path(tmp).write_text(json.dumps(report, indent=2))
+    _write_json(Path(str(out.with_suffix("")) + ".json"), report)
     print(f"anchor saved to {out} after {model.num_timesteps} steps in {wall:.0f} s")
     print(f"held-out outcomes under the normal condition: {rates}")
     return 0
 
 
 # ----------------------------------------------------------------------------- post-train
-def post_train(anchor: str | os.PathLike, config: str | os.PathLike, out_dir: str | os.PathLike,
-               timesteps: int | None = None, seed: int = 0, eval_tasks: int = 256,
-               progress: bool = True, verbose: int = 0, tensorboard: str | None = None,
-               overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+def post_train(anchor: str | os.PathLike = DEFAULT_ANCHOR, config: str | os.PathLike = DEFAULT_POST_CONFIG,
+               out_dir: str | os.PathLike = "runs/counterplay", timesteps: int | None = None, seed: int = 0,
+               eval_tasks: int = 256, progress: bool = True, verbose: int = 0, tensorboard: str | None = None,
+               overrides: dict[str, Any] | None = None, worlds: int | None = None,
+               scenarios: int | None = None) -> dict[str, Any]:
     """Post-train ``anchor`` with CounterPlay per the ``config`` recipe; returns the summary.
 
-    Writes ``out_dir/counterplay.zip`` (atomically, also every few generations while
-    training) and ``out_dir/summary.json`` / ``summary.md``.
+    ``anchor`` and ``config`` go through :func:`cpalgo.recipes.resolve_path` (``zoo/...``
+    names the shipped files). ``worlds`` overrides the recipe's number of training worlds
+    (``n_envs / max_agents``), ``scenarios`` its ``num_scenarios``. Writes ``out_dir/counterplay.zip`` (atomically, also every
+    few generations while training) and ``out_dir/summary.json`` / ``summary.md``.
+    Raises :class:`UsageError` when a file is missing or the anchor does not fit the recipe.
     """
     from sb3_contrib import RecurrentPPO
 
     from cpalgo import CounterPlay
     from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
 
-    anchor = Path(anchor)
+    anchor = Path(resolve_path(anchor))
     if not anchor.is_file():
-        raise SystemExit(f"--anchor: no such checkpoint {str(anchor)!r} (train one with `counterplay train-anchor`)")
-    recipe = load_recipe(config)
+        raise UsageError(f"--anchor: no such checkpoint {str(anchor)!r} (train one with `counterplay train-anchor`)")
+    try:
+        recipe = load_recipe(config)
+    except ValueError as exc:
+        raise UsageError(f"--config: {exc}") from None
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     max_agents = int(recipe.env_kwargs.get("max_agents", 8))
     algo_kwargs = dict(recipe.algo_kwargs)
     algo_kwargs.update(overrides or {})
 
-    env = _make_env(recipe, seed)
+    env = _make_env(recipe, seed, num_worlds=worlds, **({} if scenarios is None else {"num_scenarios": scenarios}))
     model = CounterPlay(recipe.policy, env, seed=seed, verbose=verbose, tensorboard_log=tensorboard, **algo_kwargs)
     try:
         model.set_parameters(str(anchor), exact_match=True)
-    except Exception as exc:
-        raise SystemExit(f"--anchor: {anchor} does not match the recipe's policy ({exc})") from None
+    except Exception as exc:  # noqa: BLE001 - reported with the file name
+        raise UsageError(f"--anchor: {anchor} does not match the recipe's policy ({exc})") from None
     before_model = RecurrentPPO.load(str(anchor), device="cpu")
     print(f"evaluating the anchor on {eval_tasks} held-out procedural tasks (normal condition) ...")
     before = _outcomes(before_model, eval_tasks, max_agents)
@@ -207,22 +303,23 @@ def post_train(anchor: str | os.PathLike, config: str | os.PathLike, out_dir: st
     model.learn(steps, progress_bar=progress, callback=ckpt)
     wall = time.perf_counter() - t0
     save_model_atomic(model, ckpt_path)
+    search_files = _write_searches(model, ckpt_path)
     after = _outcomes(model, eval_tasks, max_agents)
     print(f"  after:  {after}")
 
-    budget = model.budget
     summary = {
         "anchor": str(anchor),
-        "config": str(config),
+        "config": recipe.path,
         "checkpoint": str(ckpt_path),
         "timesteps": int(model.num_timesteps),
         "wall_s": round(wall, 1),
-        "budget": budget.as_dict() if hasattr(budget, "as_dict") else dict(vars(budget)),
+        "budget": model.budget.as_dict(),
         "search": _search_summary(getattr(model, "search_totals", {}), model.panel),
         "held_out_tasks": eval_tasks,
         "outcomes_before": before.as_dict(),
         "outcomes_after": after.as_dict(),
     }
+    summary["search_files"] = search_files
     _write_summary(out, summary)
     return summary
 
@@ -240,6 +337,20 @@ def _search_summary(totals: dict[str, float], panel: Sequence[str]) -> dict[str,
     return out
 
 
+def _md_value(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, dict):
+        return ", ".join(f"{k} {_md_value(v)}" for k, v in value.items()) or "none"
+    return "n/a" if value is None else str(value)
+
+
+def _md_table(title: str, values: dict[str, Any]) -> list[str]:
+    """A two-column Markdown table (one row per key) under a heading."""
+    rows = [f"| {key.replace('_', ' ')} | {_md_value(value)} |" for key, value in values.items()]
+    return [f"## {title}", "", "| | |", "|---|---|", *rows, ""]
+
+
 def _write_summary(out: Path, summary: dict[str, Any]) -> None:
     from cpalgo.evaluate.tables import write_text_atomic
 
@@ -249,15 +360,16 @@ def _write_summary(out: Path, summary: dict[str, Any]) -> None:
         "# CounterPlay post-training summary", "",
         f"- anchor: `{summary['anchor']}`, recipe `{summary['config']}`",
         f"- checkpoint: `{summary['checkpoint']}` after {summary['timesteps']} main transitions, "
-        f"{summary['wall_s']} s",
-        f"- search: {json.dumps(summary['search'], default=str)}",
-        f"- budget: {json.dumps(summary['budget'], default=str)}", "",
+        f"{summary['wall_s']} s", "",
         f"Held-out procedural tasks ({summary['held_out_tasks']}), self-play, normal condition:", "",
         "| | goal | collision | off-road | timeout | agents |", "|---|---|---|---|---|---|",
         f"| anchor | {b['goal']:.1%} | {b['collision']:.1%} | {b['offroad']:.1%} | {b['timeout']:.1%} | {b['agents']} |",
         f"| CounterPlay | {a['goal']:.1%} | {a['collision']:.1%} | {a['offroad']:.1%} | {a['timeout']:.1%} | {a['agents']} |",
+        "",
+        *_md_table("Search", summary["search"]),
+        *_md_table("Budget (transitions)", summary["budget"]),
     ]
-    write_text_atomic(out / "summary.md", "\n".join(lines) + "\n")
+    write_text_atomic(out / "summary.md", "\n".join(lines))
     print("\n".join(lines))
 
 
@@ -265,100 +377,220 @@ def cmd_post_train(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
     post_train(args.anchor, args.config, args.out, timesteps=args.timesteps, seed=args.seed,
                eval_tasks=args.eval_tasks, progress=args.progress, verbose=args.verbose,
-               tensorboard=args.tensorboard)
+               tensorboard=args.tensorboard, worlds=args.worlds, scenarios=args.scenarios)
     return 0
 
 
-def cmd_outcomes(args: argparse.Namespace) -> int:
-    from sb3_contrib import RecurrentPPO
+def _write_searches(model: Any, ckpt_path: Path) -> dict[str, str]:
+    """The kept searches beside the checkpoint, and the figure of the latest verified one
+    (``search.png`` in the same folder) when there is one."""
+    from cpalgo.viz import write_search_files
 
+    files = write_search_files(model, ckpt_path)
+    if files:
+        print(f"kept searches: {files}")
+    return files
+
+
+def cmd_searches(args: argparse.Namespace) -> int:
+    from cpalgo.counterplay.records import format_table, load_records, searches_path
+
+    path = searches_path(args.model)
+    if not path.is_file():
+        raise UsageError(f"--model: no search file {str(path)!r} (CounterPlay runs write it beside their checkpoint)")
+    try:
+        records = load_records(path)
+    except ValueError as exc:
+        raise UsageError(f"--model: {exc}") from None
+    if args.show is None:
+        print(f"{len(records)} searches kept in {path}")
+        if records:
+            print(format_table(records))
+        return 0
+    if not 0 <= args.show < len(records):
+        raise UsageError(f"--show: index {args.show} outside 0..{len(records) - 1} ({len(records)} searches kept)")
+    from cpalgo.viz import render_search
+
+    out = args.out or f"search_{args.show}.png"
+    try:
+        written = render_search(records[args.show], out)
+    except ValueError as exc:
+        raise UsageError(f"--out: {exc}") from None
+    print(records[args.show].summary())
+    print(f"written to {written}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- outcomes
+def cmd_outcomes(args: argparse.Namespace) -> int:
+    _set_threads(args.threads)
     if args.model == "expert":  # the tracking expert, the imitation teacher
         from cpalgo.selfplay_eval import expert_outcomes
 
-        print(expert_outcomes(_held_out(args.tasks), condition=args.condition, max_agents=args.max_agents,
-                              config={"dynamics": args.dynamics}))
-        return 0
-    path = Path(args.model)
-    if not path.is_file():
-        raise SystemExit(f"--model: no such checkpoint {str(path)!r}")
-    try:
-        model = RecurrentPPO.load(str(path), device="cpu")
-    except Exception as exc:
-        raise SystemExit(f"--model: {path} does not load as a RecurrentPPO checkpoint ({exc})") from None
-    print(_outcomes(model, args.tasks, args.max_agents, args.condition))
+        rates = expert_outcomes(_held_out(args.tasks), condition=args.condition, max_agents=args.max_agents,
+                                config={"dynamics": args.dynamics})
+    else:
+        from cpalgo.evaluate.runner import load_model
+
+        path = resolve_path(args.model)
+        try:
+            model = load_model(path, "--model")
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        rates = _outcomes(model, args.tasks, args.max_agents, args.condition)
+    print(rates)
+    out = Path(args.out)
+    _write_json(out, {"model": args.model if args.model == "expert" else path, "condition": args.condition,
+                      "tasks": args.tasks, "max_agents": args.max_agents, "outcomes": rates.as_dict()})
+    print(f"written to {out}")
     return 0
 
 
 # ----------------------------------------------------------------------------- parser
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows ``(default: ...)`` where a default says something (not None, not a flag)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.default is None or isinstance(action.default, bool) or action.default is argparse.SUPPRESS:
+            return action.help or ""
+        return super()._get_help_string(action) or ""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="counterplay", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="counterplay",
+        description="Counterfactual post-training (CounterPlay) of self-play driving policies on the "
+                    "cpsim batched simulator.",
+        epilog="Paths spelled zoo/NAME name the recipes and checkpoints shipped with the package. "
+               "Run `counterplay SUB-COMMAND --help` for the options of each sub-command.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="SUB-COMMAND")
+
+    def add(name: str, help: str, description: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help, description=description, formatter_class=_HelpFormatter)
+        p.set_defaults(parser=p)
+        return p
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--seed", type=int, default=0)
-        p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-        p.add_argument("--verbose", type=int, default=0)
-        p.add_argument("--tensorboard", default=None, help="tensorboard log folder")
+        p.add_argument("--seed", type=int, default=0, help="seed of the env, the algorithm and the scenario draws")
+        p.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: torch's)")
+        p.add_argument("--verbose", type=int, default=0, choices=[0, 1, 2], help="SB3 verbosity")
+        p.add_argument("--tensorboard", default=None, metavar="DIR", help="write tensorboard logs to DIR")
         p.add_argument("--no-progress", dest="progress", action="store_false", help="hide the progress bar")
 
-    run = sub.add_parser("run", help="post-train the shipped anchor on procedural scenarios (main job)")
-    common(run)
-    run.add_argument("--out", default="runs/counterplay")
-    run.add_argument("--timesteps", type=_positive_int, default=None)
-    run.add_argument("--eval-tasks", type=_positive_int, default=256)
-    run.set_defaults(func=cmd_post_train, anchor=str(DEFAULT_ANCHOR), config=str(DEFAULT_POST_CONFIG))
+    def post_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--out", default="runs/counterplay", metavar="DIR",
+                       help="folder for counterplay.zip, summary.json and summary.md")
+        p.add_argument("--timesteps", type=_positive_int, default=None, metavar="N",
+                       help="main transitions to train (default: the recipe's n_timesteps); "
+                            "training stops after the rollout that reaches N")
+        p.add_argument("--worlds", type=_positive_int, default=None, metavar="W",
+                       help="training worlds; a rollout is W x max_agents x n_steps transitions "
+                            "(default: the recipe's n_envs / max_agents)")
+        p.add_argument("--scenarios", type=_positive_int, default=None, metavar="N",
+                       help="procedural training scenarios to generate (default: the recipe's "
+                            "env_kwargs.num_scenarios)")
+        p.add_argument("--eval-tasks", type=_positive_int, default=256, metavar="N",
+                       help="held-out procedural tasks evaluated before and after")
 
-    pt = sub.add_parser("post-train", help="CounterPlay post-training of an anchor checkpoint")
+    run = add("run", "post-train the shipped anchor with PPO-Continue and CounterPlay (the main job)",
+              f"Post-train the shipped self-play anchor ({DEFAULT_ANCHOR}) with PPO-Continue and with "
+              f"CounterPlay at the same budget and seed on the procedural training pool "
+              f"({DEFAULT_POST_CONFIG}), evaluate the anchor and both on the same held-out tasks "
+              "(both splits, all traffic regimes: score, completion, at-fault collisions, timeouts, "
+              "failure repair), and write the checkpoints, tables and a summary. --eval-tasks counts "
+              "tasks per split.")
+    common(run)
+    post_options(run)
+    from cpalgo.experiments.command import add_commands, main_job_defaults
+
+    run.set_defaults(anchor=DEFAULT_ANCHOR, config=DEFAULT_POST_CONFIG, **main_job_defaults())
+
+    pt = add("post-train", "CounterPlay post-training of an anchor checkpoint",
+             "CounterPlay post-training of an anchor checkpoint with a zoo YAML recipe.")
     common(pt)
-    pt.add_argument("--anchor", default=str(DEFAULT_ANCHOR))
-    pt.add_argument("--config", default=str(DEFAULT_POST_CONFIG), help="zoo YAML recipe")
-    pt.add_argument("--out", default="runs/counterplay")
-    pt.add_argument("--timesteps", type=_positive_int, default=None)
-    pt.add_argument("--eval-tasks", type=_positive_int, default=256)
+    pt.add_argument("--anchor", type=_existing_file, default=DEFAULT_ANCHOR, metavar="ZIP",
+                    help="anchor checkpoint (RecurrentPPO with the recipe's network)")
+    pt.add_argument("--config", type=_recipe_file, default=DEFAULT_POST_CONFIG, metavar="YAML",
+                    help="zoo YAML recipe")
+    post_options(pt)
     pt.set_defaults(func=cmd_post_train)
 
-    ta = sub.add_parser("train-anchor", help="train the reward-conditioned self-play anchor")
+    ta = add("train-anchor", "train the reward-conditioned self-play anchor",
+             "Train the reward-conditioned self-play anchor (RecurrentPPO), optionally after a DAgger "
+             "warm start that imitates cpsim.expert.TrackingExpert.")
     common(ta)
-    ta.add_argument("--config", default=str(DEFAULT_ANCHOR_CONFIG), help="zoo YAML recipe")
-    ta.add_argument("--out", default="runs/anchor/anchor.zip")
-    ta.add_argument("--timesteps", type=_positive_int, default=None)
-    ta.add_argument("--init", default=None, help="start from this anchor checkpoint's weights")
+    ta.add_argument("--config", type=_recipe_file, default=DEFAULT_ANCHOR_CONFIG, metavar="YAML",
+                    help="zoo YAML recipe")
+    ta.add_argument("--out", default="runs/anchor/anchor.zip", metavar="ZIP",
+                    help="checkpoint to write (its report goes next to it as .json)")
+    ta.add_argument("--timesteps", type=_positive_int, default=None, metavar="N",
+                    help="PPO transitions (default: the recipe's n_timesteps)")
+    ta.add_argument("--init", type=_existing_file, default=None, metavar="ZIP",
+                    help="start from this anchor checkpoint's weights")
     ta.add_argument("--imitate", type=_non_negative_int, default=0, metavar="ROUNDS",
-                    help="DAgger rounds imitating cpsim.expert.TrackingExpert before PPO (default 0: none)")
-    ta.add_argument("--imitate-worlds", type=_positive_int, default=128, help="worlds per DAgger round")
-    ta.add_argument("--imitate-epochs", type=_positive_int, default=10,
+                    help="DAgger rounds imitating cpsim.expert.TrackingExpert before PPO (0: none)")
+    ta.add_argument("--imitate-worlds", type=_positive_int, default=128, metavar="W", help="worlds per DAgger round")
+    ta.add_argument("--imitate-epochs", type=_positive_int, default=10, metavar="N",
                     help="passes over the kept DAgger data per round")
-    ta.add_argument("--imitate-beta", type=_unit_float, default=1.0,
+    ta.add_argument("--imitate-beta", type=_unit_float, default=1.0, metavar="P",
                     help="probability that the expert drives in the first DAgger round (lower it when "
                          "continuing an imitation run with --init)")
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
     ta.add_argument("--drop-optimizer-state", action="store_true",
                     help="save the final checkpoint with a fresh optimiser (weights only: about half the size)")
-    ta.add_argument("--eval-tasks", type=_positive_int, default=256)
+    ta.add_argument("--eval-tasks", type=_positive_int, default=256, metavar="N",
+                    help="held-out procedural tasks evaluated at the end")
     ta.set_defaults(func=cmd_train_anchor)
 
-    oc = sub.add_parser("outcomes", help="self-play outcome rates of a checkpoint on held-out tasks")
-    oc.add_argument("--model", default=str(DEFAULT_ANCHOR),
-                    help="checkpoint, or 'expert' for cpsim.expert.TrackingExpert")
+    oc = add("outcomes", "self-play outcome rates of a checkpoint on held-out tasks",
+             "Self-play outcome rates (goal, collision, off-road, timeout) of a checkpoint on held-out "
+             "procedural tasks: every controllable agent driven by the policy under one condition. "
+             "Prints them and writes them as JSON.")
+    oc.add_argument("--model", default=DEFAULT_ANCHOR, metavar="ZIP",
+                    help="checkpoint (SB3 .zip, CounterPlay, BC .pt), or 'expert' for cpsim.expert.TrackingExpert")
     oc.add_argument("--dynamics", default="jerk", choices=["jerk", "classic"],
                     help="dynamics of the simulator for --model expert")
-    oc.add_argument("--tasks", type=_positive_int, default=256)
-    oc.add_argument("--max-agents", type=_positive_int, default=8)
-    oc.add_argument("--condition", default="normal")
+    oc.add_argument("--tasks", type=_positive_int, default=256, metavar="N", help="held-out tasks")
+    oc.add_argument("--max-agents", type=_positive_int, default=8, metavar="A", help="agent slots per world")
+    oc.add_argument("--condition", type=_condition, default="normal", metavar="PROFILE",
+                    help="condition of every agent: a profile (aggressive, normal-aggressive, normal, "
+                         "cautious-normal, cautious) or 10 comma-separated raw values")
+    oc.add_argument("--out", default="runs/outcomes.json", metavar="JSON", help="where to write the rates")
+    oc.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: torch's)")
     oc.set_defaults(func=cmd_outcomes)
 
-    po = sub.add_parser("pool", help="generate and summarise a procedural scenario pool")
-    po.add_argument("--n", type=_positive_int, default=60)
-    po.add_argument("--seed", type=int, default=0)
-    po.add_argument("--families", nargs="*", default=None)
+    se = add("searches", "list the searches a CounterPlay run kept; draw one",
+             "List the searches a CounterPlay run kept beside its checkpoint, or draw one of them.")
+    se.add_argument("--model", default="runs/counterplay/counterplay.zip", metavar="ZIP",
+                    help="a CounterPlay checkpoint (its .searches.npz beside it is read) or a search file")
+    se.add_argument("--show", type=_non_negative_int, default=None, metavar="K",
+                    help="draw search K of the table (default: list them)")
+    se.add_argument("--out", default=None, help="figure (.png/.pdf/.svg) or animation (.gif/.mp4) of --show "
+                                                "(default: search_K.png)")
+    se.set_defaults(func=cmd_searches)
+
+    po = add("pool", "generate and summarise a procedural scenario pool",
+             "Generate a procedural scenario pool and print a summary per family.")
+    po.add_argument("--n", type=_positive_int, default=60, help="scenarios")
+    po.add_argument("--seed", type=int, default=0, help="first seed")
+    po.add_argument("--families", nargs="*", default=None, metavar="FAMILY",
+                    help="procedural families to draw from (default: all)")
     po.set_defaults(func=cmd_pool)
+
+    add_commands(add)  # experiment, methods (cpalgo.experiments.command)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command; usage errors print one line and raise ``SystemExit(2)`` (argparse's way)."""
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except UsageError as exc:
+        args.parser.error(str(exc))  # prints usage and "counterplay SUB-COMMAND: error: ...", exits 2
+    return 2  # not reached: error() exits
 
 
 if __name__ == "__main__":

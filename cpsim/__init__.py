@@ -46,7 +46,7 @@ def _register_envs() -> None:
             id="cpsim/Drive-v0",
             entry_point="cpsim.envs.drive:DriveEnv",
             vector_entry_point="cpsim.envs.drive:DriveVectorEnv",
-            max_episode_steps=None,
+            max_episode_steps=91,  # the fixed horizon (SimConfig.episode_steps, cpsim.envs.drive.HORIZON)
         )
     # `python -m rl_zoo3.train --gym-packages cpsim`: default hyperparameters for cpsim/ ids
     import sys

@@ -485,9 +485,6 @@ class Model:
     def num_segments(self) -> int:
         return int(self.host["seg_a"].shape[0])
 
-    def compatible(self, other: "Model") -> bool:
-        return self.fingerprint == other.fingerprint and self.config == other.config
-
     def summary(self) -> dict[str, float]:
         h = self.host
         cells = int(h["obs_start"].size - 1)

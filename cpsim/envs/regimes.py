@@ -12,13 +12,14 @@ Regimes (:data:`REGIMES`):
 replay     co-players follow their logs (``Controller.REPLAY``)
 idm        co-players follow their logged route with IDM (``Controller.IDM``)
 static     co-players stand still at their t0 pose (``Controller.STATIC``)
-policy     co-players are driven by ``model`` (SB3 model or callable) under
+policy     co-players are driven by ``model`` (SB3 model, callable or checkpoint) under
            ``condition`` (default: the simulator's own draw at reset)
 aggressive ``model`` under the aggressive profile
 normal     ``model`` under the normal profile
 cautious   ``model`` under the cautious profile
-mix        ``model``; each co-player draws one of aggressive / normal / cautious
-           (seeded RNG, redrawn at every :meth:`~TrafficDriver.assign`)
+mix        ``model``; the three profiles rotate over the co-players (BehaviorBench): the
+           k-th co-player of a world in slot order gets aggressive / normal / cautious
+           for k % 3 = 0 / 1 / 2 (deterministic per agent, no random draw)
 ========== ======================================================================
 
 Aliases (:data:`REGIME_ALIASES`): ``expert`` = replay; ``log-imitation`` and
@@ -32,6 +33,7 @@ controller (log replay).
 
 from __future__ import annotations
 
+import os
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -70,6 +72,30 @@ def _to_numpy(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
+#: SB3 algorithms :func:`load_policy` tries, in order (``module:Class``).
+POLICY_LOADERS: tuple[str, ...] = ("sb3_contrib:RecurrentPPO", "stable_baselines3:PPO", "stable_baselines3:A2C",
+                                   "stable_baselines3:DQN")
+
+
+def load_policy(path: str | os.PathLike, argument: str = "coplayer_model") -> Any:
+    """An SB3 checkpoint for the policy regimes, loaded on the CPU by the first of
+    :data:`POLICY_LOADERS` that accepts it (a CounterPlay checkpoint loads as RecurrentPPO,
+    which acts the same). Raises ``ValueError`` naming ``argument`` and the file otherwise."""
+    import importlib
+
+    if not os.path.isfile(path):
+        raise ValueError(f"{argument}: no such checkpoint {str(path)!r}")
+    errors = []
+    for spec in POLICY_LOADERS:
+        module, _, name = spec.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        try:
+            return cls.load(str(path), device="cpu")
+        except Exception as exc:  # noqa: BLE001 - try the next algorithm
+            errors.append(f"{name}: {type(exc).__name__}: {exc}")
+    raise ValueError(f"{argument}: cannot load {str(path)!r} as an SB3 checkpoint ({'; '.join(errors)[:400]})")
+
+
 def controllable_table(scenarios: Sequence[Any]) -> np.ndarray:
     """(S, N_max) bool: ``table[s, i]`` = agent i of scenario s is controllable (False past N)."""
     n_max = max(sc.num_agents for sc in scenarios)
@@ -85,12 +111,14 @@ class TrafficDriver:
     Args:
         regime: one of :data:`REGIMES` (or an alias).
         model: for policy regimes, an SB3 model (anything with
-            ``predict(obs, state, episode_start, deterministic)``) or a callable
-            ``f(obs (n, D) float32) -> (n,) actions``. Ignored (may be None) otherwise.
+            ``predict(obs, state, episode_start, deterministic)``), a callable
+            ``f(obs (n, D) float32) -> (n,) actions``, or the path of an SB3 checkpoint
+            (:func:`load_policy`; so YAML files and command lines can name one).
+            Ignored (may be None) otherwise.
         condition: ``policy`` regime only: co-players' condition, a profile name or a raw
             10-vector; None keeps the simulator's draw at reset.
         deterministic: passed to ``model.predict``.
-        seed: seeds the per-agent profile draw of ``mix``.
+        seed: kept for compatibility (``mix`` rotates its profiles deterministically).
         ego_slot: the slot driven by the caller (never a co-player).
 
     Each co-player slot keeps its own recurrent state (batched as
@@ -101,6 +129,8 @@ class TrafficDriver:
     def __init__(self, regime: str, model: Any = None, *, condition: str | Sequence[float] | None = None,
                  deterministic: bool = True, seed: int | None = 0, ego_slot: int = 0):
         self.regime = resolve_regime(regime)
+        if self.regime in POLICY_REGIMES and isinstance(model, (str, os.PathLike)):
+            model = load_policy(model)
         if self.regime in POLICY_REGIMES:
             if model is None:
                 raise ValueError(
@@ -121,7 +151,7 @@ class TrafficDriver:
         self._coplayer: np.ndarray | None = None      # (W, A) bool
         self._state: Any = None                        # recurrent state over W * A slots
         self._episode_start: np.ndarray | None = None  # (W * A,) bool
-        #: (W, A) int8 index into MIX_PROFILES drawn for each co-player (-1: none), for logs
+        #: (W, A) int8 index into MIX_PROFILES of each co-player under ``mix`` (-1: none), for logs
         self.mix_choice: np.ndarray | None = None
 
     @property
@@ -129,7 +159,7 @@ class TrafficDriver:
         return self.regime in POLICY_REGIMES
 
     def seed(self, seed: int | None) -> None:
-        """Reseed the mix draw."""
+        """Reseed the driver's generator (``mix`` no longer draws from it)."""
         self.rng = np.random.default_rng(seed)
 
     def _bind(self, sim: Any) -> None:
@@ -188,7 +218,8 @@ class TrafficDriver:
         else:
             ctrl[co] = _POLICY
             if self.regime == "mix":
-                choice = self.rng.integers(0, len(MIX_PROFILES), size=co.shape).astype(np.int8)
+                # rotate the profiles over the co-players of each world, in slot order
+                choice = ((np.cumsum(co, axis=1) - 1) % len(MIX_PROFILES)).astype(np.int8)
                 table = np.stack([profile(p) for p in MIX_PROFILES])
                 cond[co] = table[choice[co]]
                 self.mix_choice[worlds] = np.where(co, choice, -1)
@@ -245,10 +276,5 @@ class TrafficDriver:
         return actions
 
 
-def make_driver(regime: str, model: Any = None, **kwargs: Any) -> TrafficDriver:
-    """Shorthand for :class:`TrafficDriver` (kept for the evaluation's call sites)."""
-    return TrafficDriver(regime, model, **kwargs)
-
-
 __all__ = ["REGIMES", "REGIME_ALIASES", "POLICY_REGIMES", "MIX_PROFILES", "TrafficDriver",
-           "resolve_regime", "controllable_table", "make_driver", "CoplayerFn"]
+           "resolve_regime", "controllable_table", "load_policy", "CoplayerFn"]

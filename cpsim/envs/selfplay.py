@@ -8,14 +8,18 @@ from typing import Any, Iterable, Sequence
 import gymnasium
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions
+from cpsim.scoring import episode_scores
 
 OUTCOME_NAMES: tuple[str, ...] = ("running", "goal", "collision", "offroad", "timeout")
 CONDITION_MODES = ("train",)
 #: procedural scenarios generated when no scenarios are given (``num_scenarios`` overrides)
 DEFAULT_POOL_SIZE = 16
+#: episode metrics in the info of an agent's last step (:func:`cpsim.scoring.episode_scores`)
+_SCORE_KEYS = ("at_fault_collision", "comfort", "lane_align", "lane_center", "score")
 
 
 def _np(x: Any) -> np.ndarray:
@@ -36,8 +40,9 @@ def _procedural_pool(n: int, seed: int, family: str | None) -> tuple:
 
 def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_dir: str | None = None,
                       num_scenarios: int | None = None, seed: int = 0) -> list:
-    """Scenario list from exactly one source: a list, a procedural family, a WOMD folder,
-    or (none given) the procedural training pool (``train_pool(DEFAULT_POOL_SIZE, seed)``).
+    """Scenario list from exactly one source: a list, a procedural family, a WOMD folder
+    (``.json``, ``.json.gz`` and ``.npz`` files, via :func:`cpsim.scenario.load_dir`), or
+    (none given) the procedural training pool (``train_pool(DEFAULT_POOL_SIZE, seed)``).
 
     ``num_scenarios`` caps the count (procedural: how many scenarios to generate).
     """
@@ -65,9 +70,10 @@ def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_
         n = DEFAULT_POOL_SIZE if num_scenarios is None else int(num_scenarios)
         out = list(_procedural_pool(n, int(seed), family))
     elif womd_dir is not None:
-        out = list(scen_mod.load_dir(womd_dir))
-        if not out:
-            raise ValueError(f"womd_dir: no scenario files in {womd_dir!r}")
+        # load_dir returns (scenarios, report); skipped files are already issued as a
+        # ScenarioLoadWarning, and a folder with nothing loadable raises ScenarioError.
+        loaded, _report = scen_mod.load_dir(womd_dir)
+        out = list(loaded)
     else:
         n = DEFAULT_POOL_SIZE if num_scenarios is None else int(num_scenarios)
         out = list(_procedural_pool(n, int(seed), None))
@@ -134,8 +140,9 @@ class SelfPlayVecEnv(VecEnv):
         seed: seeds scenario draws and condition draws (and the simulator).
         config: a ``SimConfig`` or mapping; other keyword arguments override its fields.
         device: "cpu" or "cuda[:n]".
-        render_mode: None or "rgb_array" (``render()`` tiles one top-down frame per world,
-            camera on the whole scene; at most ``render_worlds`` worlds).
+        render_mode: None, "rgb_array" (``render()`` tiles one top-down frame per world,
+            camera on the whole scene; at most ``render_worlds`` worlds) or "human"
+            (``render()`` shows that tiling in a matplotlib window, :mod:`cpsim.envs.viewer`).
 
     Episodes and auto-reset:
         A world resets (new scenario, new conditions) when its ``episode_steps`` decisions
@@ -149,18 +156,28 @@ class SelfPlayVecEnv(VecEnv):
         * An active slot whose agent ends its episode on this step (goal, collision,
           off-road, timeout) emits ``done=True``, its last reward,
           ``infos[i]["terminal_observation"]`` (the observation at the end),
-          ``"TimeLimit.truncated"`` (True for timeouts), ``"is_success"`` (goal reached)
-          and ``"outcome"`` ("goal" / "collision" / "offroad" / "timeout"). If its world
-          resets on the same step the returned observation is the new episode's first
-          observation (SB3 auto-reset semantics), otherwise the slot turns inactive.
+          ``"TimeLimit.truncated"`` (True for timeouts), ``"is_success"`` (goal reached),
+          ``"outcome"`` ("goal" / "collision" / "offroad" / "timeout") and the episode's
+          BehaviorBench metrics (:func:`cpsim.scoring.episode_scores`):
+          ``"at_fault_collision"``, ``"comfort"``, ``"lane_align"``, ``"lane_center"`` and
+          ``"score"`` (0-100). If its world resets on the same step the returned
+          observation is the new episode's first observation (SB3 auto-reset semantics),
+          otherwise the slot turns inactive.
         * An inactive slot (no agent, a non-POLICY agent, or an agent removed until its
           world resets) emits a zero observation, reward 0.0, ``done=False`` and
-          ``infos[i]["active"] = False``, and its action is ignored. It never emits
-          ``done=True``: when its world resets and a new agent takes the slot, the slot
-          simply becomes active again with ``done=False``, so an unmasked PPO sees zero
-          observations with zero reward between episodes but never a spurious episode end.
-          Under ``VecMonitor`` those steps count into the next episode's length, not its
-          return.
+          ``infos[i]["active"] = False``, and its action is ignored. When its world resets
+          and a new agent takes the slot, the slot simply becomes active again with
+          ``done=False``, so an unmasked PPO sees zero observations with zero reward
+          between episodes but never a spurious episode end; under ``VecMonitor`` those
+          steps count into the next episode's length, not its return.
+        * Empty episodes: a slot that held no POLICY agent during its world's whole
+          episode (``max_agents`` above the scenario's controllable cars) emits
+          ``done=True`` when the world resets, with reward 0, ``"empty": True``,
+          ``"TimeLimit.truncated": False``, a zero ``"terminal_observation"`` and no
+          ``"outcome"``. Every index thus ends episodes, which SB3's ``evaluate_policy``
+          and ``EvalCallback`` need (they count episodes per index); their means then
+          include those 0-reward episodes, and ``VecMonitor`` records them too. Use
+          ``infos[i]["outcome"]`` (or ``"is_success"``) to count agents' episodes only.
 
     Observations and rewards are fresh NumPy float32 arrays (copies, never views on
     simulator memory). ``get_attr`` / ``set_attr`` / ``env_method`` act on this one
@@ -172,8 +189,8 @@ class SelfPlayVecEnv(VecEnv):
                  dynamics: str | None = None, condition: str | Sequence[float] | np.ndarray = "train",
                  seed: int = 0, config: Any = None, device: str = "cpu", render_mode: str | None = None,
                  render_worlds: int = 4, **config_overrides: Any):
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array']")
+        if render_mode not in (None, "rgb_array", "human"):
+            raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array', 'human']")
         self.scenarios = resolve_scenarios(scenarios, family=family, womd_dir=womd_dir,
                                            num_scenarios=num_scenarios, seed=seed)
         self.sim = make_simulator(self.scenarios, num_worlds, max_agents, dynamics=dynamics, config=config,
@@ -189,6 +206,7 @@ class SelfPlayVecEnv(VecEnv):
         self.render_mode = render_mode
         self.render_worlds = int(render_worlds)
         self._renderer = None
+        self._viewer: Any = None
         self._rng = np.random.default_rng(seed)
         self._seed = seed
         n = self.num_worlds * self.max_agents
@@ -196,6 +214,7 @@ class SelfPlayVecEnv(VecEnv):
         self._obs_dim = int(self.observation_space.shape[0])
         self._actions: np.ndarray | None = None
         self._active = np.zeros(n, bool)
+        self._held = np.zeros(n, bool)  # the slot held an active agent since its world's reset
         self._flat_index = np.arange(n)
 
     # ------------------------------------------------------------------ internals
@@ -225,6 +244,7 @@ class SelfPlayVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         obs = self._observe()
+        self._held = self._active.copy()
         self.reset_infos = [{"active": bool(a)} for a in self._active]
         return obs
 
@@ -263,14 +283,19 @@ class SelfPlayVecEnv(VecEnv):
         cut = was_active & ~agent_done & np.repeat(world_done, self.max_agents)
         ended = agent_done | cut
         done_idx = np.flatnonzero(ended)
-        terminal_obs = truncated = outcome = None
+        terminal_obs = truncated = outcome = scores = None
         if done_idx.size:
             terminal_obs = copy_obs(_np(self.sim.obs).reshape(n, self._obs_dim)[done_idx], (done_idx.size, self._obs_dim))
             truncated = _np(self.sim.truncated).reshape(n)[done_idx] | cut[done_idx]
             outcome = np.where(cut[done_idx], 4, _np(self.sim.outcome).reshape(n)[done_idx])
+            scores = episode_scores({k: _np(v).reshape(n)[done_idx] for k, v in self.sim.metrics.items()})
+        # slots that held no agent during a world's episode end an empty one when it resets
+        reset_slots = np.repeat(world_done, self.max_agents)
+        empty = reset_slots & ~self._held & ~ended
         if np.any(world_done):
             self._reset_worlds(np.flatnonzero(world_done))
         obs = self._observe()
+        self._held = np.where(reset_slots, self._active, self._held | self._active)
         # infos: one fresh dict per index (wrappers mutate them); extra keys only where done
         infos: list[dict[str, Any]] = [{"active": a} for a in self._active.tolist()]
         if done_idx.size:
@@ -281,7 +306,12 @@ class SelfPlayVecEnv(VecEnv):
                 info["TimeLimit.truncated"] = bool(truncated[k])
                 info["is_success"] = names[k] == "goal"
                 info["outcome"] = names[k]
-        return obs, reward, ended, infos
+                for key in _SCORE_KEYS:
+                    info[key] = scores[key][k].item()
+        for i in np.flatnonzero(empty).tolist():
+            infos[i].update({"terminal_observation": np.zeros(self._obs_dim, np.float32),
+                             "TimeLimit.truncated": False, "empty": True})
+        return obs, reward, ended | empty, infos
 
     def active_mask(self) -> np.ndarray:
         """(num_envs,) bool copy: which indices of the last observation hold a live POLICY agent."""
@@ -289,6 +319,9 @@ class SelfPlayVecEnv(VecEnv):
 
     def close(self) -> None:
         self._renderer = None
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
 
     def seed(self, seed: int | None = None) -> Sequence[int | None]:
         """Seed the next ``reset()`` (scenario and condition draws); SB3 semantics."""
@@ -324,13 +357,24 @@ class SelfPlayVecEnv(VecEnv):
     # ------------------------------------------------------------------ rendering
     def get_images(self) -> Sequence[np.ndarray | None]:
         """One top-down frame per world (first ``render_worlds`` worlds), scene camera."""
-        if self.render_mode != "rgb_array":
+        if self.render_mode not in ("rgb_array", "human"):
             return [None for _ in range(self.num_worlds)]
         if self._renderer is None:
             from cpsim.render import TopDownRenderer
 
             self._renderer = TopDownRenderer(width=320, height=320, camera="scene")
         return [self._renderer.render_sim(self.sim, w) for w in range(min(self.num_worlds, self.render_worlds))]
+
+    def render(self, mode: str | None = None) -> np.ndarray | None:
+        """``rgb_array``: the tiled frames; ``human``: show them in a window, return None."""
+        if self.render_mode == "human" and mode in (None, "human"):
+            from cpsim.envs.viewer import HumanViewer, tile
+
+            if self._viewer is None:
+                self._viewer = HumanViewer("cpsim self-play", fps=10)
+            self._viewer.show(tile([f for f in self.get_images() if f is not None]))
+            return None
+        return super().render(mode)
 
     def world_frames(self, worlds: Iterable[int] | None = None, **renderer_kwargs: Any) -> list[np.ndarray]:
         """Frames of the given worlds (default all) regardless of ``render_mode``."""
@@ -341,4 +385,62 @@ class SelfPlayVecEnv(VecEnv):
         return [r.render_sim(self.sim, int(w)) for w in worlds]
 
 
-__all__ = ["SelfPlayVecEnv", "OUTCOME_NAMES", "resolve_scenarios", "make_simulator", "observation_space_for", "copy_obs", "OBS_BOUND"]
+def _active_flags(infos: Sequence[dict[str, Any]]) -> np.ndarray:
+    return np.fromiter((bool(i.get("active", True)) for i in infos), bool, count=len(infos))
+
+
+class SelfPlayVecNormalize(VecNormalize):
+    """``VecNormalize`` for :class:`SelfPlayVecEnv`: statistics from active slots only.
+
+    SB3's ``VecNormalize`` updates its observation statistics with every index, so the
+    zero observations of inactive slots pull the mean towards 0 and the variance down,
+    and their zero rewards enter the return statistics. This subclass updates the
+    observation statistics with the slots active after the step (``infos[i]["active"]``)
+    and the return statistics with the slots that were active before it (whose reward is
+    an agent's), and it returns zero observations on inactive slots, as the env does.
+    Same arguments, ``save`` / ``load`` as ``VecNormalize``.
+    """
+
+    def _active_now(self) -> np.ndarray:
+        try:
+            return np.asarray(self.venv.env_method("active_mask", indices=[0])[0], bool)
+        except AttributeError:  # not a self-play env: every slot counts
+            return np.ones(self.num_envs, bool)
+
+    def reset(self) -> np.ndarray:
+        obs = self.venv.reset()
+        self.old_obs = obs
+        self.returns = np.zeros(self.num_envs)
+        self._was_active = self._active_now()
+        if self.training and self.norm_obs and self._was_active.any():
+            self.obs_rms.update(obs[self._was_active])
+        out = self.normalize_obs(obs)
+        out[~self._was_active] = 0.0
+        return out
+
+    def step_wait(self) -> VecEnvStepReturn:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        self.old_obs, self.old_reward = obs, rewards
+        active = _active_flags(infos)
+        was_active = getattr(self, "_was_active", None)
+        if was_active is None or was_active.shape != active.shape:
+            was_active = np.ones_like(active)
+        if self.training and self.norm_obs and active.any():
+            self.obs_rms.update(obs[active])
+        obs = self.normalize_obs(obs)
+        obs[~active] = 0.0
+        self.returns = self.returns * self.gamma + rewards
+        if self.training and was_active.any():
+            self.ret_rms.update(self.returns[was_active])
+        rewards = self.normalize_reward(rewards)
+        for idx in np.flatnonzero(dones):
+            info = infos[idx]
+            if "terminal_observation" in info and not info.get("empty", False):
+                info["terminal_observation"] = self.normalize_obs(info["terminal_observation"])
+        self.returns[dones] = 0
+        self._was_active = active
+        return obs, rewards, dones, infos
+
+
+__all__ = ["SelfPlayVecEnv", "SelfPlayVecNormalize", "OUTCOME_NAMES", "resolve_scenarios", "make_simulator",
+           "observation_space_for", "copy_obs", "OBS_BOUND"]

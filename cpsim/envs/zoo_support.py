@@ -13,18 +13,21 @@ whenever no ``--conf-file`` was given and the zoo's own file has no entry. An ex
 from __future__ import annotations
 
 import functools
+import importlib.resources
 import os
 import sys
 from typing import Any
 
-HYPERPARAMS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "zoo_hyperparams")
+#: The YAML files, inside the package (read through importlib.resources; a file path for
+#: every ordinary install, which is what rl-zoo3's ``--conf-file`` takes).
+HYPERPARAMS_DIR = str(importlib.resources.files("cpsim.envs") / "zoo_hyperparams")
 ENV_PREFIX = "cpsim/"
 
 
 def hyperparams_file(algo: str) -> str | None:
     """Path of this package's YAML for ``algo`` (rl-zoo3 name, e.g. "ppo"), or None."""
-    path = os.path.join(HYPERPARAMS_DIR, f"{algo}.yml")
-    return path if os.path.isfile(path) else None
+    res = importlib.resources.files("cpsim.envs") / "zoo_hyperparams" / f"{algo}.yml"
+    return str(res) if res.is_file() else None
 
 
 def install(exp_manager_cls: Any) -> None:

@@ -13,7 +13,7 @@ import yaml
 
 from cpalgo import cli, zoo
 from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
-from cpalgo.recipes import SELFPLAY_ENV_ID, ZOO_DIR, load_recipe
+from cpalgo.recipes import SELFPLAY_ENV_ID, ZOO_DIR, load_recipe, resolve_path, shipped_names, shipped_path
 
 
 @pytest.fixture(autouse=True)
@@ -93,14 +93,24 @@ def test_atomic_save_keeps_the_last_good_checkpoint(tmp_path):
         AtomicCheckpointCallback(0, target)
 
 
+def usage_error(capsys, argv: list[str]) -> str:
+    """Run the command, expect a usage error (exit status 2); return its stderr."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "Traceback" not in err
+    return err
+
+
 def test_pool_command_summarises_families(capsys):
     assert cli.main(["pool", "--n", "6", "--seed", "3"]) == 0
     out = capsys.readouterr().out
     assert "6 scenarios generated" in out
     for family in ("intersection", "merge", "parked"):
         assert family in out
-    with pytest.raises(SystemExit, match="unknown"):
-        cli.main(["pool", "--n", "2", "--families", "spaghetti"])
+    assert "unknown ['spaghetti']" in usage_error(capsys, ["pool", "--n", "2", "--families", "spaghetti"])
 
 
 def test_train_anchor_then_post_train_end_to_end(tmp_path, capsys):
@@ -121,15 +131,23 @@ def test_train_anchor_then_post_train_end_to_end(tmp_path, capsys):
     assert summary["timesteps"] >= 256
     assert summary["budget"]["main"] > 0
     assert summary["outcomes_before"]["agents"] == summary["outcomes_after"]["agents"] > 0
-    assert (out / "counterplay.zip").is_file() and (out / "summary.md").read_text().startswith("# CounterPlay")
+    md = (out / "summary.md").read_text()
+    assert (out / "counterplay.zip").is_file() and md.startswith("# CounterPlay")
+    assert "{" not in md and "| searches |" in md and "| main |" in md  # tables, not raw JSON
+    from sb3_contrib import RecurrentPPO
+
     from cpalgo import CounterPlay
+    from cpalgo.evaluate.runner import load_model
 
     loaded = CounterPlay.load(out / "counterplay.zip", device="cpu")
     assert loaded.num_timesteps == summary["timesteps"]
+    # the evaluation loads a CounterPlay checkpoint as CounterPlay, an anchor as RecurrentPPO
+    assert type(load_model(out / "counterplay.zip")) is CounterPlay
+    assert type(load_model(anchor)) is RecurrentPPO
 
-    with pytest.raises(SystemExit, match="--anchor"):
-        cli.main(["post-train", "--anchor", str(tmp_path / "nope.zip"), "--config", str(post_cfg),
-                  "--out", str(out), "--no-progress"])
+    err = usage_error(capsys, ["post-train", "--anchor", str(tmp_path / "nope.zip"), "--config", str(post_cfg),
+                               "--out", str(out), "--no-progress"])
+    assert "--anchor" in err and "nope.zip" in err
 
 
 def test_train_anchor_imitation_warm_start(tmp_path):
@@ -164,7 +182,7 @@ def test_train_anchor_imitation_warm_start(tmp_path):
         cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "1", "--imitate-beta", "2"])
 
 
-def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch):
+def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch, capsys):
     recipe = tiny_recipe(tmp_path, ZOO_DIR / "counterplay.yml")
     monkeypatch.chdir(tmp_path)
     logs = tmp_path / "logs"
@@ -178,6 +196,15 @@ def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch):
     model = CounterPlay.load(saved[0], device="cpu")
     assert model.num_timesteps >= 128 and model.n_envs == 16  # 2 worlds x 8 agent slots
 
+    # enjoy on the self-play env reports the agents' episodes (rl-zoo3 alone prints
+    # nothing for n_envs > 1)
+    capsys.readouterr()
+    assert zoo.main(["enjoy", "--algo", "counterplay", "--env", SELFPLAY_ENV_ID, "-f", str(logs),
+                     "--n-envs", "16", "-n", "100", "--no-render", "--seed", "0"]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if "agent episodes" in x]
+    assert lines, "enjoy printed no episode report"
+    assert "goal" in lines[-1] and "mean reward" in lines[-1]
+
 
 def test_selfplay_settings_carrier():
     import gymnasium
@@ -188,14 +215,90 @@ def test_selfplay_settings_carrier():
     assert env.action_space.n == 12 and env.observation_space.shape[0] > 0
     with pytest.raises(RuntimeError, match="batched"):
         env.reset()
-    with pytest.raises(ValueError, match="no-render"):
-        zoo.SelfPlaySettings(render_mode="human")
+    assert zoo.SelfPlaySettings(render_mode="human").selfplay_kwargs["render_mode"] == "human"
     assert zoo._translate_config_flag(["-f", "a.yml", "-f2"]) == ["--conf-file", "a.yml", "-f2"]
     assert zoo._translate_config_flag(["-f", "logs/"]) == ["-f", "logs/"]
 
 
-def test_outcomes_command_evaluates_the_tracking_expert(capsys):
-    assert cli.main(["outcomes", "--model", "expert", "--tasks", "6"]) == 0
-    line = capsys.readouterr().out.strip().splitlines()[-1]
+def test_outcomes_command_evaluates_the_tracking_expert(capsys, tmp_path):
+    out = tmp_path / "rates" / "expert.json"
+    assert cli.main(["outcomes", "--model", "expert", "--tasks", "6", "--out", str(out)]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-2]
     goal = float(line.split("goal ")[1].split("%")[0])
     assert goal >= 75.0 and "6 tasks" in line  # 95 % on 256 held-out tasks
+    written = json.loads(out.read_text())
+    assert written["model"] == "expert" and written["tasks"] == 6
+    assert written["outcomes"]["goal"] == pytest.approx(goal / 100, abs=1e-3)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["outcomes", "--condition", "reckless"], "unknown profile 'reckless'"),
+    (["post-train", "--config", "missing.yml"], "no such file 'missing.yml'"),
+    (["pool", "--n", "2.7"], "expected a whole number, got '2.7'"),
+    (["run", "--timesteps", "0"], "must be >= 1"),
+    (["outcomes", "--model", "nope.zip", "--tasks", "1"], "does not exist"),
+    (["train-anchor", "--init", "nope.zip"], "no such file 'nope.zip'"),
+])
+def test_cli_errors_exit_2_without_a_traceback(capsys, argv, message):
+    assert message in usage_error(capsys, argv)
+
+
+def test_console_script_errors_and_version(tmp_path):
+    """The installed command: one error line and exit status 2, never a traceback; --version."""
+    import subprocess
+    import sys
+
+    def run(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "cpalgo.cli", *argv], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=120)
+
+    for argv in (["outcomes", "--condition", "reckless"], ["post-train", "--config", "missing.yml"],
+                 ["pool", "--n", "2.7"]):
+        done = run(*argv)
+        assert done.returncode == 2 and "Traceback" not in done.stderr and "error:" in done.stderr, done.stderr
+    version = run("--version")
+    assert version.returncode == 0 and version.stdout.strip() == f"counterplay {cli._version()}"
+    helped = run("--help")
+    assert helped.stdout.count("train-anchor") == 1 and "::" not in helped.stdout  # argparse lists them once
+
+
+def test_shipped_files_resolve_from_any_folder(tmp_path, monkeypatch):
+    """zoo/NAME names the file shipped inside the package when no such file exists here."""
+    monkeypatch.chdir(tmp_path)
+    assert "anchor.zip" in shipped_names() and "bc_traffic.pt" in shipped_names()
+    assert resolve_path("zoo/anchor.zip") == str(shipped_path("anchor.zip")) == resolve_path("zoo/anchor")
+    assert load_recipe("zoo/counterplay.yml").path == str(shipped_path("counterplay.yml"))
+    assert resolve_path("zoo/nothing.yml") == "zoo/nothing.yml"
+    assert zoo._translate_config_flag(["-f", "zoo/counterplay.yml", "-i", "zoo/anchor.zip"]) == [
+        "--conf-file", str(shipped_path("counterplay.yml")), "-i", str(shipped_path("anchor.zip"))]
+    (tmp_path / "zoo").mkdir()
+    (tmp_path / "zoo" / "anchor.zip").write_bytes(b"mine")
+    assert resolve_path("zoo/anchor.zip") == "zoo/anchor.zip"  # a file that exists wins
+    with pytest.raises(FileNotFoundError, match="shipped"):
+        shipped_path("nothing.yml")
+
+
+def test_recipes_keep_normalize_and_vec_env_wrappers(tmp_path, capsys):
+    """The recipe loader keeps rl-zoo3's normalize and vec_env_wrapper; the counterplay
+    command applies the wrappers and refuses what it cannot apply (no silent drop)."""
+    from stable_baselines3.common.vec_env import VecCheckNan, VecMonitor
+
+    wrapped = tiny_recipe(tmp_path, ZOO_DIR / "anchor.yml", vec_env_wrapper=[
+        "stable_baselines3.common.vec_env.VecMonitor",
+        {"stable_baselines3.common.vec_env.VecCheckNan": {"raise_exception": True}}])
+    recipe = load_recipe(wrapped)
+    assert recipe.vec_env_wrappers == (("stable_baselines3.common.vec_env.VecMonitor", {}),
+                                       ("stable_baselines3.common.vec_env.VecCheckNan", {"raise_exception": True}))
+    env = cli._make_env(recipe, seed=0)
+    assert isinstance(env, VecCheckNan) and isinstance(env.venv, VecMonitor) and env.raise_exception
+    assert env.num_envs == 16 and env.get_attr("max_agents", [0]) == [8]
+
+    normalized = tiny_recipe(tmp_path, ZOO_DIR / "counterplay.yml", normalize="{'norm_obs': True, 'norm_reward': False}")
+    assert load_recipe(normalized).normalize == {"norm_obs": True, "norm_reward": False}
+    assert "normalize" in usage_error(capsys, ["post-train", "--config", str(normalized), "--timesteps", "1",
+                                                "--eval-tasks", "1", "--no-progress"])
+    other = tiny_recipe(tmp_path, ZOO_DIR / "anchor.yml", frame_stack=4)
+    assert load_recipe(other).zoo_only == {"frame_stack": 4}
+    assert "frame_stack" in usage_error(capsys, ["train-anchor", "--config", str(other), "--timesteps", "1"])
+    bad = tiny_recipe(tmp_path, ZOO_DIR / "anchor.yml", vec_env_wrapper="no.such.Wrapper")
+    assert "no.such.Wrapper" in usage_error(capsys, ["train-anchor", "--config", str(bad), "--timesteps", "1"])

@@ -82,13 +82,18 @@ def test_episode_contract_infos_and_autoreset(env):
         assert len(infos) == env.num_envs
         active = env.active_mask()
         assert [i["active"] for i in infos] == active.tolist()
-        # inactive before the step: reward 0, never done
-        assert np.all(rew[~prev_active] == 0) and not np.any(done[~prev_active])
+        # inactive before the step: reward 0, done only to end an empty episode
+        empty = np.array([bool(i.get("empty")) for i in infos])
+        assert np.all(rew[~prev_active] == 0) and not np.any(done & ~prev_active & ~empty)
+        assert not np.any(empty & prev_active)
         # inactive now: zero observation (unless a done index just got a fresh episode)
         assert np.all(obs[~active] == 0)
-        for i in np.flatnonzero(done):
+        for i in np.flatnonzero(done & ~empty):
             info = infos[i]
-            assert {"terminal_observation", "TimeLimit.truncated", "is_success", "outcome", "active"} <= set(info)
+            assert {"terminal_observation", "TimeLimit.truncated", "is_success", "outcome", "active",
+                    "at_fault_collision", "comfort", "lane_align", "lane_center", "score"} <= set(info)
+            assert 0.0 <= info["comfort"] <= 1.0 and 0.0 <= info["score"] <= 100.0
+            assert info["score"] == 0.0 or (info["outcome"] == "goal" and not info["at_fault_collision"])
             assert info["outcome"] in ("goal", "collision", "offroad", "timeout")
             assert info["is_success"] == (info["outcome"] == "goal")
             assert info["TimeLimit.truncated"] == (info["outcome"] == "timeout")
@@ -213,3 +218,77 @@ def test_cuda_vecenv_returns_host_copies(scenarios):
     obs2, rew, done, infos = e.step(np.full(e.num_envs, 7))
     assert isinstance(rew, np.ndarray) and rew.dtype == np.float32 and done.dtype == bool
     np.testing.assert_array_equal(e.active_mask(), e.sim.policy_mask.cpu().numpy().reshape(-1))
+
+
+def test_empty_slots_end_episodes_so_evaluate_policy_finishes(scenarios):
+    """max_agents above the controllable cars (the README's 16): slots that never hold an
+    agent end an empty episode at each world reset, so SB3's evaluate_policy (and
+    EvalCallback, which calls it) finishes instead of waiting forever on them."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    env = SelfPlayVecEnv(scenarios, num_worlds=2, max_agents=16, seed=0, episode_steps=STEPS)
+    env.reset()
+    never = ~env.active_mask()
+    assert never.any()  # the pool has fewer than 16 controllable cars per scenario
+    model = PPO("MlpPolicy", env, n_steps=8, batch_size=64, seed=0, device="cpu", policy_kwargs=dict(net_arch=[8]))
+    for venv in (env, VecMonitor(env)):
+        rewards, lengths = evaluate_policy(model, venv, n_eval_episodes=2 * env.num_envs, return_episode_rewards=True,
+                                           warn=False)
+        # an episode's length includes the inactive steps before it (after the slot's last one)
+        assert len(rewards) == 2 * env.num_envs and max(lengths) < 2 * STEPS
+    # the empty episodes: at the world reset, reward 0, no outcome, not a timeout
+    env.seed(1)
+    env.reset()
+    held = env.active_mask()
+    for _ in range(STEPS):
+        _, rew, done, infos = env.step(np.full(env.num_envs, 7))
+        held |= env.active_mask() & ~done
+    empty = [i for i in np.flatnonzero(done) if infos[i].get("empty")]
+    assert empty and all(not held[i] for i in empty)
+    for i in empty:
+        assert rew[i] == 0 and "outcome" not in infos[i] and infos[i]["TimeLimit.truncated"] is False
+        assert not infos[i]["terminal_observation"].any()
+
+
+def test_selfplay_vecnormalize_counts_active_slots_only(scenarios):
+    """SelfPlayVecNormalize: observation statistics from active slots, zero observations on
+    inactive ones (SB3's VecNormalize averages the padding's zeros in)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from cpsim.envs.selfplay import SelfPlayVecEnv, SelfPlayVecNormalize
+
+    env = SelfPlayVecEnv(scenarios, num_worlds=2, max_agents=16, seed=0, episode_steps=STEPS)
+    ours, plain = SelfPlayVecNormalize(env), VecNormalize(env)
+    obs = ours.reset()
+    raw = ours.get_original_obs()
+    active = env.active_mask()
+    assert np.all(obs[~active] == 0) and ours.obs_rms.count == pytest.approx(active.sum() + 1e-4)
+    np.testing.assert_allclose(ours.obs_rms.mean, raw[active].mean(0), atol=1e-5)
+    plain.reset()
+    assert plain.obs_rms.count == pytest.approx(env.num_envs + 1e-4)
+    counted = ours.obs_rms.count
+    for _ in range(3):
+        obs, _, done, infos = ours.step(np.full(env.num_envs, 7))
+        now = env.active_mask()
+        counted += now.sum()
+        assert np.all(obs[~now] == 0)
+    assert ours.obs_rms.count == pytest.approx(counted)
+
+
+def test_human_render_mode_runs_headless(scenarios):
+    import matplotlib
+
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    matplotlib.use("Agg")
+    e = SelfPlayVecEnv(scenarios, num_worlds=2, max_agents=3, render_mode="human", episode_steps=STEPS)
+    e.reset()
+    assert e.render() is None
+    frame = e._viewer._image.get_array()
+    assert frame.shape[:2] == (320, 640)  # two 320-pixel worlds side by side
+    e.close()
+
