@@ -3,10 +3,12 @@
 * :class:`Scenario` / :class:`ScenarioError`: the validated NumPy data model.
 * ``generate(family, seed)``, ``FAMILIES``, ``pool(n, seed, families=None)``: built-in
   procedural scenarios (``cpsim.scenario.procedural``).
-* ``load(path)``, ``load_dir(path)``, ``convert_dir(src, dst)``: WOMD JSON and the
-  ``.npz`` cache (``cpsim.scenario.womd``).
-* ``interactivity_score``, ``interactive_split``, ``random_split``: BehaviorBench splits
-  (``cpsim.scenario.splits``).
+* ``load(path)``, ``load_dir(path)``, ``convert_dir(src, dst)``, ``scenario_files(folder)``:
+  WOMD JSON (``.json`` or gzip-compressed ``.json.gz``) and the ``.npz`` cache
+  (``cpsim.scenario.womd``).
+* ``interactivity_score``, ``interactive_split``, ``random_split``, ``track_tasks``:
+  BehaviorBench splits, of a list of tasks or of a WOMD folder (one task per
+  ``tracks_to_predict`` vehicle) (``cpsim.scenario.splits``).
 """
 
 from __future__ import annotations
@@ -33,9 +35,11 @@ _LAZY = {
     "load_dir": "cpsim.scenario.womd",
     "convert_dir": "cpsim.scenario.womd",
     "LoadReport": "cpsim.scenario.womd",
+    "scenario_files": "cpsim.scenario.womd",
     "interactivity_score": "cpsim.scenario.splits",
     "interactive_split": "cpsim.scenario.splits",
     "random_split": "cpsim.scenario.splits",
+    "track_tasks": "cpsim.scenario.splits",
     "interactivity_terms": "cpsim.scenario.splits",
     "interactivity_report": "cpsim.scenario.splits",
     "load_json": "cpsim.scenario.womd",

@@ -1,5 +1,15 @@
 """BehaviorBench-style task splits: the interactivity score, Interactive-N and Random-N.
 
+A *task* is one scenario with its designated ego (``Scenario.ego_index``). On WOMD there
+is one task per ``tracks_to_predict`` vehicle (:func:`track_tasks`): the same scene with
+``ego_index`` set to that vehicle, the scenario id unchanged. :func:`interactive_split`
+and :func:`random_split` take either a list of tasks (used as given) or a folder of WOMD
+files (``.json``, ``.json.gz``, ``.npz``), which they load and expand with
+:func:`track_tasks` first.
+
+The split builders only read :func:`interactivity_report` (eligibility and score per
+task); the score below can be replaced without touching them.
+
 The interactivity score of a task (one scenario, its designated ego) is
 
     S = 0.20 min(n_far_goal / 15, 1) + 0.25 min(mean |jerk| / 30, 1)
@@ -14,7 +24,8 @@ Each term is computed from the logged data as documented in :func:`interactivity
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Sequence
+import os
+from typing import Any, Sequence, Union
 
 import numpy as np
 
@@ -27,7 +38,11 @@ __all__ = [
     "interactivity_score",
     "interactivity_terms",
     "random_split",
+    "track_tasks",
 ]
+
+#: What the split builders accept: a list of tasks, or a folder of WOMD files.
+TaskSource = Union[str, "os.PathLike[str]", Sequence[Scenario]]
 
 # Eligibility (BehaviorBench).
 MIN_EGO_GOAL_DISTANCE = 10.0  # m
@@ -201,6 +216,48 @@ def interactivity_report(scenarios: Sequence[Scenario]) -> list[InteractivityTer
     return [interactivity_terms(s) for s in scenarios]
 
 
+def track_tasks(scenarios: Sequence[Scenario], vehicles_only: bool = True) -> list[Scenario]:
+    """One task per ``tracks_to_predict`` agent of each scenario (BehaviorBench on WOMD).
+
+    Each task is the scenario with ``ego_index`` set to that agent (``dataclasses.replace``:
+    arrays are shared, the id, source and everything else are unchanged), in scenario
+    order, then ``tracks_to_predict`` order; repeated indices count once. With
+    ``vehicles_only`` (the default, as in BehaviorBench) only vehicle tracks make tasks.
+    A scenario without ``tracks_to_predict`` (procedural scenes, or a WOMD file that lists
+    none) gives one task: itself, with its own ego (``sdc_track_index`` for WOMD); one whose
+    tracks are all non-vehicles gives none. Eligibility is not checked here.
+    """
+    out: list[Scenario] = []
+    for i, s in enumerate(scenarios):
+        if not isinstance(s, Scenario):
+            raise ValueError(f"scenarios[{i}]: expected a Scenario, got {type(s).__name__}")
+        tracks = [int(k) for k in dict.fromkeys(s.tracks_to_predict.tolist())]
+        if not tracks:
+            out.append(s)
+            continue
+        for k in tracks:
+            if vehicles_only and s.agent_types[k] != AgentType.VEHICLE:
+                continue
+            out.append(s if k == s.ego_index else dataclasses.replace(s, ego_index=k))
+    return out
+
+
+def _is_folder_source(source: Any) -> bool:
+    return isinstance(source, (str, os.PathLike))
+
+
+def _tasks_of(source: TaskSource, cache_dir: str | os.PathLike | None) -> list[Scenario]:
+    """A folder -> :func:`track_tasks` of its scenarios; a list -> the list itself."""
+    if not _is_folder_source(source):
+        if cache_dir is not None:
+            raise ValueError("cache_dir: only used when the source is a folder")
+        return list(source)
+    from cpsim.scenario.womd import load_dir
+
+    scenarios, _report = load_dir(source, cache_dir=cache_dir)  # skipped files are warned about
+    return track_tasks(scenarios)
+
+
 def _check_split_args(scenarios: Sequence[Scenario], n: Any) -> list[Scenario]:
     pool = list(scenarios)
     if not pool:
@@ -213,34 +270,50 @@ def _check_split_args(scenarios: Sequence[Scenario], n: Any) -> list[Scenario]:
     return pool
 
 
-def interactive_split(scenarios: Sequence[Scenario], n: int) -> list[Scenario]:
-    """Interactive-N: the ``n`` eligible scenarios with the highest interactivity score.
+def interactive_split(scenarios: TaskSource, n: int, *,
+                      cache_dir: str | os.PathLike | None = None) -> list[Scenario]:
+    """Interactive-N: the ``n`` eligible tasks with the highest interactivity score.
 
-    Ordered by score (descending), ties broken by scenario id, then input position, so the
-    result is deterministic. Raises ``ValueError`` for an empty pool or when ``n`` exceeds
-    the number of eligible scenarios.
+    ``scenarios`` is a list of tasks (scenarios, each with its ``ego_index``) or a folder
+    of WOMD files, loaded with :func:`cpsim.scenario.load_dir` (``cache_dir`` passed on)
+    and expanded to one task per ``tracks_to_predict`` vehicle (:func:`track_tasks`).
+    Ordered by score (descending), ties broken by scenario id, then ego index, then input
+    position, so the result is deterministic. Raises ``ValueError`` for an empty pool or
+    when ``n`` exceeds the number of eligible tasks (``ScenarioError``, a ``ValueError``,
+    for a folder without loadable scenarios).
     """
-    pool = _check_split_args(scenarios, n)
-    ranked = [(-t.score, s.id, i) for i, (s, t) in enumerate(zip(pool, interactivity_report(pool))) if t.eligible]
+    pool = _check_split_args(_tasks_of(scenarios, cache_dir), n)
+    report = interactivity_report(pool)
+    ranked = [(-t.score, s.id, s.ego_index, i) for i, (s, t) in enumerate(zip(pool, report)) if t.eligible]
     if n > len(ranked):
-        raise ValueError(f"n: {n} exceeds the {len(ranked)} eligible scenarios (of {len(pool)})")
+        raise ValueError(f"n: {n} exceeds the {len(ranked)} eligible {_what(scenarios)} (of {len(pool)})")
     ranked.sort()
-    return [pool[i] for _, _, i in ranked[:n]]
+    return [pool[item[-1]] for item in ranked[:n]]
 
 
-def random_split(scenarios: Sequence[Scenario], n: int, seed: int, eligible_only: bool = False) -> list[Scenario]:
-    """Random-N: ``n`` scenarios drawn uniformly without replacement, seeded.
+def _what(source: TaskSource) -> str:
+    return "tasks" if _is_folder_source(source) else "scenarios"
 
+
+def random_split(scenarios: TaskSource, n: int, seed: int, eligible_only: bool | None = None, *,
+                 cache_dir: str | os.PathLike | None = None) -> list[Scenario]:
+    """Random-N: ``n`` tasks drawn uniformly without replacement, seeded.
+
+    ``scenarios``: a list of tasks or a folder of WOMD files (see :func:`interactive_split`).
     The draw is the first ``n`` entries of a seeded permutation (``numpy.random.default_rng``),
     so the same seed gives the same split and Random-n is a prefix of Random-m for n <= m.
-    With ``eligible_only`` the draw is among scenarios eligible for the interactivity score.
-    Raises ``ValueError`` for an empty pool or when ``n`` exceeds the pool.
+    With ``eligible_only`` the draw is among tasks eligible for the interactivity score;
+    its default (None) is True for a folder (BehaviorBench: eligible tasks only) and False
+    for a list (unchanged behaviour). Raises ``ValueError`` for an empty pool or when ``n``
+    exceeds the pool.
     """
-    pool = _check_split_args(scenarios, n)
+    if eligible_only is None:
+        eligible_only = _is_folder_source(scenarios)
+    pool = _check_split_args(_tasks_of(scenarios, cache_dir), n)
     if eligible_only:
         pool = [s for s, t in zip(pool, interactivity_report(pool)) if t.eligible]
     if n > len(pool):
-        what = "eligible scenarios" if eligible_only else "scenarios"
+        what = f"eligible {_what(scenarios)}" if eligible_only else _what(scenarios)
         raise ValueError(f"n: {n} exceeds the {len(pool)} {what} available")
     order = np.random.default_rng(seed).permutation(len(pool))
     return [pool[int(i)] for i in order[:n]]

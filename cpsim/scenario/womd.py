@@ -2,11 +2,19 @@
 
 Public API:
 
-* :func:`load` ``(path) -> Scenario``: a ``.json`` file or a ``.npz`` cache, by suffix.
-* :func:`load_json`, :func:`load_cache`, :func:`save_cache`: the two formats explicitly.
+* :func:`load` ``(path) -> Scenario``: a ``.json`` or ``.json.gz`` file or a ``.npz`` cache,
+  by suffix.
+* :func:`load_json`, :func:`load_cache`, :func:`save_cache`: the two formats explicitly
+  (:func:`load_json` reads plain and gzip-compressed JSON alike).
 * :func:`load_dir` ``(path, cache_dir=None) -> (list[Scenario], LoadReport)``: a folder of
-  ``.json`` and/or ``.npz`` files, preferring a fresh cache over its JSON.
+  ``.json`` / ``.json.gz`` and/or ``.npz`` files, preferring a fresh cache over its JSON.
 * :func:`convert_dir` ``(src_dir, dst_dir) -> LoadReport``: JSON folder -> one ``.npz`` per file.
+* :func:`scenario_files` ``(folder)``: the scenario files of a folder that the above read.
+
+A gzip-compressed file (``<stem>.json.gz``, as in GPUDrive / PufferDrive releases) is the
+JSON file ``<stem>.json`` in every respect: same stem, same cache name ``<stem>.npz``, same
+messages. When a folder holds both ``x.json`` and ``x.json.gz``, ``x.json`` is used and the
+``.gz`` is reported as skipped.
 
 JSON schema read here (fields not listed are ignored, e.g. ``tl_states``, ``height``, ``z``):
 
@@ -16,7 +24,9 @@ JSON schema read here (fields not listed are ignored, e.g. ``tl_states``, ``heig
 * object: ``position`` (91 x {x, y, z}), ``velocity`` (91 x {x, y}), ``heading`` (91),
   ``valid`` (91), ``width``, ``length``, ``goalPosition`` {x, y}, ``type``; optional
   ``id`` (default: the object's index) and ``mark_as_expert`` (default False).
-  Unknown object types map to :attr:`AgentType.OTHER`.
+  Unknown object types map to :attr:`AgentType.OTHER`. Object ids must be unique within a
+  file: a repeated id raises :class:`ScenarioError` naming the file and the id (no silent
+  de-duplication: which copy is right cannot be told).
 * road: ``geometry`` (list of >= 1 {x, y, z}), ``type``; unknown road types (including
   ``"unknown"``) map to :attr:`RoadType.OTHER`. Single-point roads (stop signs) are kept
   as one-vertex polylines.
@@ -35,12 +45,14 @@ from (used to decide freshness). It loads 4-6x faster than the JSON (see BENCHMA
 from __future__ import annotations
 
 import dataclasses
+import gzip
 import json
 import logging
 import os
 import tempfile
 import warnings
 import zipfile
+import zlib
 from operator import itemgetter
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -68,11 +80,13 @@ __all__ = [
     "LoadReport",
     "ScenarioLoadWarning",
     "convert_dir",
+    "is_json_file",
     "load",
     "load_cache",
     "load_dir",
     "load_json",
     "save_cache",
+    "scenario_files",
 ]
 
 logger = logging.getLogger(__name__)
@@ -82,6 +96,9 @@ logger = logging.getLogger(__name__)
 CACHE_FORMAT_VERSION = 1
 CACHE_SUFFIX = ".npz"
 JSON_SUFFIX = ".json"
+#: gzip-compressed JSON (GPUDrive / PufferDrive releases); read like ``.json``.
+GZ_JSON_SUFFIX = ".json.gz"
+_GZIP_MAGIC = b"\x1f\x8b"
 FAMILY = "womd"
 
 _GET_X = itemgetter("x")
@@ -231,6 +248,7 @@ def _parse_objects(objects: list, source: str) -> dict[str, np.ndarray]:
     scalars: list[tuple[Any, Any, Any, Any]] = []  # (length, width, goal x, goal y)
     types = np.empty(n, np.int8)
     ids = np.empty(n, np.int64)
+    first_with_id: dict[int, int] = {}  # object id -> index of the first object carrying it
     expert = np.zeros(n, bool)
     # A loop over objects is fine here (load time, once per file); the per-step data goes
     # through map/itemgetter and one bulk NumPy conversion per field.
@@ -261,6 +279,13 @@ def _parse_objects(objects: list, source: str) -> dict[str, np.ndarray]:
         oid = obj.get("id", i)
         if not isinstance(oid, int) or isinstance(oid, bool):
             raise ScenarioError(source, f"{where}.id", f"expected an integer, got {oid!r:.40}")
+        if oid in first_with_id:
+            j = first_with_id[oid]
+            defaulted = [f"objects[{k}]" for k in (j, i) if "id" not in objects[k]]
+            note = f"; {' and '.join(defaulted)} has no 'id', whose default is the object's index" if defaulted else ""
+            raise ScenarioError(source, f"{where}.id",
+                                f"duplicate object id {oid} (objects[{j}] has the same id{note})")
+        first_with_id[oid] = i
         ids[i] = oid
         flag = obj.get("mark_as_expert", False)
         if not isinstance(flag, bool):
@@ -401,11 +426,25 @@ def _parse_document(doc: Any, source: str) -> Scenario:
     )
 
 
-def load_json(path: str | os.PathLike) -> Scenario:
-    """Read one WOMD scenario JSON file into a validated :class:`Scenario`.
+def _decompress(data: bytes, source: str) -> bytes:
+    """Gunzip ``data`` when it starts with the gzip magic bytes; plain bytes pass through."""
+    if not data.startswith(_GZIP_MAGIC):
+        return data
+    try:
+        return gzip.decompress(data)
+    except EOFError:
+        raise ScenarioError(source, "<document>", "truncated gzip data (unexpected end of file)") from None
+    except (OSError, zlib.error) as exc:  # gzip.BadGzipFile is an OSError
+        raise ScenarioError(source, "<document>", f"not valid gzip data: {exc}") from None
 
-    ``source`` is ``str(path)``, ``family`` is ``"womd"``, ``id`` is ``scenario_id``
-    (else ``name``). Raises :class:`ScenarioError` naming the file and the field.
+
+def load_json(path: str | os.PathLike) -> Scenario:
+    """Read one WOMD scenario JSON file (plain or gzip-compressed) into a validated :class:`Scenario`.
+
+    Compression is recognised by content (the gzip magic bytes), whatever the name:
+    ``x.json.gz`` and ``x.json`` load the same way. ``source`` is ``str(path)``, ``family``
+    is ``"womd"``, ``id`` is ``scenario_id`` (else ``name``). Raises :class:`ScenarioError`
+    naming the file and the field.
     """
     source = str(path)
     try:
@@ -414,7 +453,7 @@ def load_json(path: str | os.PathLike) -> Scenario:
         raise ScenarioError(source, "path", "file not found") from None
     except OSError as exc:
         raise ScenarioError(source, "path", f"cannot read: {exc}") from None
-    return _parse_document(_parse_json_bytes(data, source), source)
+    return _parse_document(_parse_json_bytes(_decompress(data, source), source), source)
 
 
 # ---------------------------------------------------------------------------- .npz cache
@@ -493,6 +532,11 @@ def _read_cache(path: Path) -> tuple[Scenario, dict[str, Any]]:
             raise ScenarioError(source, name, "missing from the cache")
         if data[name].dtype.kind not in "biuf":
             raise ScenarioError(source, name, f"unexpected dtype {data[name].dtype}")
+    ids = data["agent_ids"]
+    if ids.ndim == 1 and ids.size > 1:  # caches written before ids were checked on load
+        uniq, counts = np.unique(ids, return_counts=True)
+        if np.any(counts > 1):
+            raise ScenarioError(source, "agent_ids", f"duplicate object id {int(uniq[np.argmax(counts > 1)])}")
     scenario = Scenario(
         id=meta["id"],
         ego_index=meta["ego_index"],
@@ -513,15 +557,31 @@ def load_cache(path: str | os.PathLike) -> Scenario:
     return _read_cache(Path(path))[0]
 
 
+def is_json_file(path: str | os.PathLike) -> bool:
+    """Whether ``path``'s name ends in ``.json`` or ``.json.gz`` (case-insensitive)."""
+    name = Path(path).name.lower()
+    return name.endswith(JSON_SUFFIX) or name.endswith(GZ_JSON_SUFFIX)
+
+
+def _stem(path: Path) -> str:
+    """File name without ``.json.gz`` / ``.json`` / ``.npz``: the key shared by a JSON and its cache."""
+    name = path.name
+    low = name.lower()
+    for suffix in (GZ_JSON_SUFFIX, JSON_SUFFIX, CACHE_SUFFIX):
+        if low.endswith(suffix):
+            return name[: -len(suffix)]
+    return path.stem
+
+
 def load(path: str | os.PathLike) -> Scenario:
-    """Load a scenario from a ``.json`` file or a ``.npz`` cache, chosen by suffix."""
+    """Load a scenario from a ``.json`` / ``.json.gz`` file or a ``.npz`` cache, chosen by suffix."""
     p = Path(path)
-    suffix = p.suffix.lower()
-    if suffix == JSON_SUFFIX:
+    if is_json_file(p):
         return load_json(p)
-    if suffix == CACHE_SUFFIX:
+    if p.suffix.lower() == CACHE_SUFFIX:
         return load_cache(p)
-    raise ScenarioError(str(path), "path", f"unknown suffix {p.suffix!r}: expected {JSON_SUFFIX} or {CACHE_SUFFIX}")
+    raise ScenarioError(str(path), "path", f"unknown suffix {p.suffix!r}: expected {JSON_SUFFIX}, "
+                        f"{GZ_JSON_SUFFIX} or {CACHE_SUFFIX}")
 
 
 # ---------------------------------------------------------------------------- folders
@@ -532,8 +592,45 @@ def _folder(path: str | os.PathLike, argument: str) -> Path:
     return folder
 
 
-def _files(folder: Path, suffix: str) -> dict[str, Path]:
-    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() == suffix and p.is_file()}
+def _json_files(folder: Path, report: LoadReport | None = None) -> dict[str, Path]:
+    """``{stem: path}`` of the ``.json`` and ``.json.gz`` files in ``folder``.
+
+    When both ``x.json`` and ``x.json.gz`` exist, ``x.json`` wins and the ``.gz`` is
+    recorded in ``report.skipped`` (when a report is given).
+    """
+    out: dict[str, Path] = {}
+    gz: list[Path] = []
+    for p in sorted(folder.iterdir()):
+        if not p.is_file():
+            continue
+        low = p.name.lower()
+        if low.endswith(JSON_SUFFIX):
+            out[_stem(p)] = p
+        elif low.endswith(GZ_JSON_SUFFIX):
+            gz.append(p)
+    for p in gz:
+        stem = _stem(p)
+        if stem in out:
+            if report is not None:
+                report.skipped.append((str(p), f"{out[stem].name} holds the same stem and is loaded instead"))
+            continue
+        out[stem] = p
+    return dict(sorted(out.items()))
+
+
+def _npz_files(folder: Path) -> dict[str, Path]:
+    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() == CACHE_SUFFIX and p.is_file()}
+
+
+def scenario_files(folder: str | os.PathLike) -> list[Path]:
+    """The ``.json``, ``.json.gz`` and ``.npz`` files of ``folder`` (not recursive), sorted by name.
+
+    For benchmarks and tools that want the file list without loading; :func:`load_dir`
+    decides which of them it uses (a fresh cache over its JSON, ``x.json`` over
+    ``x.json.gz``). Raises :class:`ScenarioError` when the folder does not exist.
+    """
+    f = _folder(folder, "folder")
+    return sorted({*_json_files(f).values(), *_npz_files(f).values()}, key=lambda p: p.name)
 
 
 def _fresh(origin: dict[str, Any], json_path: Path) -> bool:
@@ -547,7 +644,7 @@ def _fresh(origin: dict[str, Any], json_path: Path) -> bool:
 def load_dir(
     path: str | os.PathLike, cache_dir: str | os.PathLike | None = None
 ) -> tuple[list[Scenario], LoadReport]:
-    """Load every ``.json`` and ``.npz`` scenario in a folder (not recursive).
+    """Load every ``.json``, ``.json.gz`` and ``.npz`` scenario in a folder (not recursive).
 
     For each file stem, a fresh cache is preferred over the JSON: first
     ``cache_dir/<stem>.npz`` (when ``cache_dir`` is given), then ``<stem>.npz`` next to the
@@ -555,18 +652,21 @@ def load_dir(
     With ``cache_dir``, missing, stale or unreadable caches are (re)written from the JSON,
     so the folder is converted once. A stale or unreadable ``.npz`` inside the folder itself
     is left alone and reported as skipped; ``.npz`` files without a JSON are loaded as they
-    are. A second file with an already-loaded scenario id is skipped.
+    are. A second file with an already-loaded scenario id is skipped, and so is
+    ``<stem>.json.gz`` when ``<stem>.json`` exists. A ``.json.gz`` is otherwise exactly a
+    ``.json`` (its cache is ``<stem>.npz``, fresh against the ``.gz`` file's size and time).
 
     Returns the scenarios sorted by file name and a :class:`LoadReport`; anything skipped
     is also issued as a :class:`ScenarioLoadWarning`. Raises :class:`ScenarioError` when the
     folder is missing, holds no scenario files, or every file was skipped.
     """
     folder = _folder(path, "path")
-    jsons, npzs = _files(folder, JSON_SUFFIX), _files(folder, CACHE_SUFFIX)
-    if not jsons and not npzs:
-        raise ScenarioError(str(path), "path", f"no {JSON_SUFFIX} or {CACHE_SUFFIX} files in the folder")
-    cache = Path(cache_dir) if cache_dir is not None else None
     report = LoadReport()
+    jsons, npzs = _json_files(folder, report), _npz_files(folder)
+    if not jsons and not npzs:
+        raise ScenarioError(str(path), "path",
+                            f"no {JSON_SUFFIX}, {GZ_JSON_SUFFIX} or {CACHE_SUFFIX} files in the folder")
+    cache = Path(cache_dir) if cache_dir is not None else None
     scenarios: list[Scenario] = []
     seen_ids: dict[str, str] = {}
     for stem in sorted(set(jsons) | set(npzs)):
@@ -623,20 +723,20 @@ def load_dir(
 def convert_dir(
     src_dir: str | os.PathLike, dst_dir: str | os.PathLike, overwrite: bool = False
 ) -> LoadReport:
-    """Convert every ``*.json`` in ``src_dir`` to ``dst_dir/<stem>.npz`` (created if needed).
+    """Convert every ``*.json`` / ``*.json.gz`` in ``src_dir`` to ``dst_dir/<stem>.npz`` (created if needed).
 
     A cache that is already fresh for its JSON is kept unless ``overwrite``. Malformed
     files are skipped and reported (also as a :class:`ScenarioLoadWarning`); no partial
     cache is ever left behind. ``loaded`` lists the JSON files that now have a fresh cache.
-    Raises :class:`ScenarioError` when ``src_dir`` is missing or holds no ``.json`` file.
+    Raises :class:`ScenarioError` when ``src_dir`` is missing or holds no ``.json`` / ``.json.gz`` file.
     """
     src = _folder(src_dir, "src_dir")
-    jsons = _files(src, JSON_SUFFIX)
+    report = LoadReport()
+    jsons = _json_files(src, report)
     if not jsons:
-        raise ScenarioError(str(src_dir), "src_dir", f"no {JSON_SUFFIX} files in the folder")
+        raise ScenarioError(str(src_dir), "src_dir", f"no {JSON_SUFFIX} or {GZ_JSON_SUFFIX} files in the folder")
     dst = Path(dst_dir)
     dst.mkdir(parents=True, exist_ok=True)
-    report = LoadReport()
     for stem, json_path in sorted(jsons.items()):
         target = dst / f"{stem}{CACHE_SUFFIX}"
         if not overwrite and target.is_file():
@@ -673,7 +773,7 @@ def bench_load(folder: Path, repeat: int) -> list[dict[str, Any]]:
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for stem, json_path in sorted(_files(_folder(folder, "folder"), JSON_SUFFIX).items()):
+        for stem, json_path in _json_files(_folder(folder, "folder")).items():
             scenario = load_json(json_path)
             packed = save_cache(scenario, Path(tmp) / f"{stem}.npz", compress=True)
             raw = save_cache(scenario, Path(tmp) / f"{stem}_raw.npz", compress=False)
@@ -696,11 +796,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m cpsim.scenario.womd", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    conv = sub.add_parser("convert", help="convert a folder of WOMD JSON into .npz caches")
+    conv = sub.add_parser("convert", help="convert a folder of WOMD JSON (.json / .json.gz) into .npz caches")
     conv.add_argument("src")
     conv.add_argument("dst")
     conv.add_argument("--overwrite", action="store_true")
-    bench = sub.add_parser("bench", help="time JSON vs cache loading for each JSON in a folder")
+    bench = sub.add_parser("bench", help="time JSON vs cache loading for each JSON (.json / .json.gz) in a folder")
     bench.add_argument("folder")
     bench.add_argument("--repeat", type=int, default=7)
     args = parser.parse_args(argv)

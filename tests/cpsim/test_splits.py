@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+import gzip
+import json
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +22,7 @@ from cpsim.scenario.splits import (
     interactivity_score,
     interactivity_terms,
     random_split,
+    track_tasks,
 )
 
 T = 91
@@ -250,3 +255,123 @@ def test_report_lists_every_scenario_in_order() -> None:
     by_id = {r.scenario_id: r for r in report}
     assert not by_id["near"].eligible and by_id["near"].score is None
     assert by_id["g35"].as_dict()["score"] == pytest.approx(interactivity_score(scenarios[1]))
+
+
+# ----------------------------------------------------------------------------- WOMD tasks and folders
+def test_track_tasks_one_task_per_vehicle_track() -> None:
+    base = dataclasses.replace(hand_scenario(sid="scene"), tracks_to_predict=np.array([2, 0, 3, 2, 1], np.int32))
+    tasks = track_tasks([base])
+    assert [t.ego_index for t in tasks] == [2, 0, 1]  # pedestrian 3 left out, repeated 2 once
+    assert all(t.id == "scene" and t.source == base.source for t in tasks)
+    assert tasks[1] is base  # its own ego: the scenario itself
+    assert tasks[0].log_xy is base.log_xy  # arrays shared, not copied
+    assert [t.ego_index for t in track_tasks([base], vehicles_only=False)] == [2, 0, 3, 1]
+    no_tracks = hand_scenario(sid="procedural-like")
+    assert track_tasks([no_tracks]) == [no_tracks]
+    walkers = dataclasses.replace(base, tracks_to_predict=np.array([3], np.int32))
+    assert track_tasks([walkers]) == []
+    with pytest.raises(ValueError, match=r"scenarios\[0\]: expected a Scenario"):
+        track_tasks(["not a scenario"])  # type: ignore[list-item]
+
+
+def scenario_doc(s: Scenario) -> dict:
+    """A Scenario as a GPUDrive / PufferDrive JSON document (the fields the loader reads)."""
+    kinds = {0: "vehicle", 1: "pedestrian", 2: "cyclist", 3: "other"}
+    objects = [{
+        "position": [{"x": float(x), "y": float(y), "z": 0.0} for x, y in s.log_xy[i]],
+        "velocity": [{"x": float(x), "y": float(y)} for x, y in s.log_velocity[i]],
+        "heading": [float(h) for h in s.log_heading[i]],
+        "valid": [bool(v) for v in s.log_valid[i]],
+        "length": float(s.sizes[i, 0]), "width": float(s.sizes[i, 1]),
+        "goalPosition": {"x": float(s.goal_xy[i, 0]), "y": float(s.goal_xy[i, 1]), "z": 0.0},
+        "type": kinds[int(s.agent_types[i])], "id": 1000 + i,
+    } for i in range(s.num_agents)]
+    roads = [{"geometry": [{"x": float(x), "y": float(y), "z": 0.0} for x, y in s.road(r)], "type": "road_edge"}
+             for r in range(s.num_roads)]
+    return {"scenario_id": s.id, "objects": objects, "roads": roads,
+            "metadata": {"sdc_track_index": int(s.ego_index),
+                         "tracks_to_predict": [{"track_index": int(k), "difficulty": 0} for k in s.tracks_to_predict]}}
+
+
+def womd_folder(path: Path) -> Path:
+    """Four .json.gz scenes, tracks_to_predict [0, 1, 2, 3]: egos 0 (goal varies) and 1 (12 m)
+    can be eligible, ego 2 (goal 5 m) never, agent 3 is a pedestrian (no task)."""
+    path.mkdir()
+    for sid, goal in (("w15", 15.0), ("w35", 35.0), ("w25", 25.0), ("w05", 5.0)):
+        s = dataclasses.replace(hand_scenario(ego_goal_m=goal, sid=sid),
+                                tracks_to_predict=np.array([0, 1, 2, 3], np.int32))
+        (path / f"{sid}.json.gz").write_bytes(gzip.compress(json.dumps(scenario_doc(s)).encode()))
+    return path
+
+
+def _keys(tasks: list[Scenario]) -> list[tuple[str, int]]:
+    return [(t.id, t.ego_index) for t in tasks]
+
+
+def test_interactive_split_of_a_folder_ranks_its_track_tasks(tmp_path: Path) -> None:
+    folder = womd_folder(tmp_path / "womd")
+    tasks = track_tasks(cs.load_dir(folder)[0])
+    assert len(tasks) == 12  # 4 scenes x 3 vehicle tracks
+    eligible = [t for t, r in zip(tasks, interactivity_report(tasks)) if r.eligible]
+    assert sorted(_keys(eligible)) == sorted([(sid, 0) for sid in ("w15", "w25", "w35")]
+                                             + [(sid, 1) for sid in ("w05", "w15", "w25", "w35")])
+    top = interactive_split(folder, 7)
+    assert _keys(top) == _keys(interactive_split(tasks, 7))
+    scores = [interactivity_score(t) for t in top]
+    assert None not in scores and scores == sorted(scores, reverse=True)
+    assert _keys(top)[0] == ("w35", 0)  # the farthest ego goal scores highest
+    assert cs.interactive_split is interactive_split and cs.track_tasks is track_tasks
+    with pytest.raises(ValueError, match="n: 8 exceeds the 7 eligible tasks"):
+        interactive_split(folder, 8)
+    # the .npz cache is used when asked for
+    assert _keys(interactive_split(folder, 3, cache_dir=tmp_path / "cache")) == _keys(top[:3])
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == ["w05.npz", "w15.npz", "w25.npz", "w35.npz"]
+    with pytest.raises(ValueError, match="cache_dir: only used when the source is a folder"):
+        interactive_split(tasks, 1, cache_dir=tmp_path / "cache")
+    with pytest.raises(ValueError, match="folder does not exist"):
+        interactive_split(tmp_path / "missing", 1)
+
+
+def test_random_split_of_a_folder_samples_eligible_tasks(tmp_path: Path) -> None:
+    folder = womd_folder(tmp_path / "womd")
+    tasks = track_tasks(cs.load_dir(folder)[0])
+    a = random_split(folder, 5, seed=3)
+    assert _keys(a) == _keys(random_split(str(folder), 5, seed=3))  # str or Path
+    assert _keys(a) == _keys(random_split(tasks, 5, seed=3, eligible_only=True))
+    assert all(interactivity_score(t) is not None for t in a)
+    assert len(set(_keys(a))) == 5
+    assert _keys(random_split(folder, 3, seed=3)) == _keys(a)[:3]  # nested
+    assert {tuple(_keys(random_split(folder, 5, seed=k))) for k in range(6)} != {tuple(_keys(a))}
+    everything = random_split(folder, 12, seed=0, eligible_only=False)  # opt out: all 12 tasks
+    assert sorted(_keys(everything)) == sorted(_keys(tasks))
+    with pytest.raises(ValueError, match="n: 8 exceeds the 7 eligible tasks"):
+        random_split(folder, 8, seed=0)
+
+
+# ----------------------------------------------------------------------------- real WOMD validation scenes
+def _womd_valid() -> Path:
+    env = os.environ.get("CPSIM_WOMD_DIR")
+    return (Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared/data/womd") / "valid"
+
+
+WOMD_VALID = _womd_valid()
+
+
+@pytest.mark.skipif(not WOMD_VALID.is_dir(), reason=f"{WOMD_VALID} not found (set CPSIM_WOMD_DIR)")
+def test_splits_of_the_real_validation_scenes() -> None:
+    scenes = cs.load_dir(WOMD_VALID)[0]
+    tasks = track_tasks(scenes)
+    vehicle_tracks = sum(int((s.agent_types[np.unique(s.tracks_to_predict)] == AgentType.VEHICLE).sum())
+                         for s in scenes)
+    assert len(scenes) == 100 and len(tasks) == vehicle_tracks == 245
+    assert len(set(_keys(tasks))) == len(tasks)
+    top = interactive_split(tasks, 20)
+    scores = [interactivity_score(t) for t in top]
+    assert None not in scores and scores == sorted(scores, reverse=True)
+    for t in top:  # BehaviorBench eligibility, checked from the data
+        assert t.ego_index in t.tracks_to_predict and t.agent_types[t.ego_index] == AgentType.VEHICLE
+        assert t.log_valid[t.ego_index, 0] and t.log_valid[:, 0].sum() >= 5
+        assert np.linalg.norm(t.goal_xy[t.ego_index] - t.log_xy[t.ego_index, 0]) >= 10.0
+    rand = random_split(tasks, 20, seed=0, eligible_only=True)
+    assert all(interactivity_score(t) is not None for t in rand) and len(set(_keys(rand))) == 20
+    assert _keys(rand) == _keys(random_split(tasks, 20, seed=0, eligible_only=True))

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import gzip
 import json
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -39,6 +41,12 @@ FILE_407 = WOMD_DIR / "tfrecord-00002-of-01000_407.json"
 needs_womd = pytest.mark.skipif(
     not (FILE_4.is_file() and FILE_407.is_file()),
     reason=f"real WOMD files not found in {WOMD_DIR} (set CPSIM_WOMD_DIR)",
+)
+# The 140 gzip-compressed scenes of the shared data folder (40 train, 100 valid).
+WOMD_TRAIN, WOMD_VALID = WOMD_DIR / "train", WOMD_DIR / "valid"
+needs_womd_gz = pytest.mark.skipif(
+    not (WOMD_TRAIN.is_dir() and WOMD_VALID.is_dir()),
+    reason=f"real WOMD .json.gz folders train/ and valid/ not found in {WOMD_DIR} (set CPSIM_WOMD_DIR)",
 )
 
 
@@ -87,7 +95,12 @@ def make_doc(scenario_id: str = "hand-json", n_objects: int = 6) -> dict[str, An
 
 
 def write_doc(path: Path, doc: Any) -> Path:
-    path.write_text(json.dumps(doc))  # json.dumps writes NaN / Infinity tokens as Python's json does
+    """Write ``doc`` as JSON; gzip-compressed when the name ends in ``.gz``."""
+    text = json.dumps(doc)  # json.dumps writes NaN / Infinity tokens as Python's json does
+    if path.name.endswith(".gz"):
+        path.write_bytes(gzip.compress(text.encode()))
+    else:
+        path.write_text(text)
     return path
 
 
@@ -436,7 +449,7 @@ def test_load_dir_errors(tmp_path: Path) -> None:
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "readme.md").write_text("x")
-    with pytest.raises(ScenarioError, match="no .json or .npz files"):
+    with pytest.raises(ScenarioError, match=r"no .json, .json.gz or .npz files"):
         load_dir(empty)
     allbad = tmp_path / "allbad"
     allbad.mkdir()
@@ -464,7 +477,7 @@ def test_convert_dir_writes_caches_once_and_reports(tmp_path: Path) -> None:
     assert rep.ok and scenarios == [expected["a"], expected["b"]]
     with pytest.raises(ScenarioError, match="src_dir"):
         convert_dir(tmp_path / "missing", dst)
-    with pytest.raises(ScenarioError, match="no .json files"):
+    with pytest.raises(ScenarioError, match=r"no .json or .json.gz files"):
         convert_dir(dst, tmp_path / "dst2")
 
 
@@ -540,3 +553,233 @@ def test_load_dir_with_cache_dir_equal_to_the_folder(tmp_path: Path) -> None:
     second, rep2 = load_dir(folder, cache_dir=folder)
     assert rep2.ok and rep2.written == [] and second == first == [expected["a"], expected["b"]]
     assert [Path(p).name for p in rep2.loaded] == ["a.npz", "b.npz"]
+
+
+# ----------------------------------------------------------------------------- .json.gz
+def test_json_gz_loads_exactly_like_json(tmp_path: Path) -> None:
+    plain = load(write_doc(tmp_path / "s.json", make_doc()))
+    gz_path = write_doc(tmp_path / "s.json.gz", make_doc())
+    assert gz_path.read_bytes()[:2] == b"\x1f\x8b"
+    for loader in (load, womd.load_json):
+        s = loader(gz_path)
+        assert s == plain and s.source == str(gz_path) and s.family == "womd"
+    upper = write_doc(tmp_path / "UP.JSON.GZ", make_doc("up"))
+    assert load(upper).id == "up"
+    assert womd.is_json_file(gz_path) and womd.is_json_file(upper) and not womd.is_json_file(tmp_path / "x.gz")
+    # compression is recognised by content: a gzip stream named .json loads too
+    (tmp_path / "zipped.json").write_bytes(gz_path.read_bytes())
+    assert load(tmp_path / "zipped.json") == plain
+
+
+@pytest.mark.parametrize("damage, needle", [
+    ("truncate", "truncated gzip data"),
+    ("corrupt", "not valid gzip data"),
+])
+def test_bad_gzip_raises_scenario_error_naming_the_file(tmp_path: Path, damage: str, needle: str) -> None:
+    data = gzip.compress(json.dumps(make_doc()).encode())
+    if damage == "truncate":
+        data = data[: len(data) // 2]
+    else:  # keep the magic bytes, break the header's compression method
+        data = data[:2] + b"\x00" + data[3:]
+    path = tmp_path / f"{damage}.json.gz"
+    path.write_bytes(data)
+    with pytest.raises(ScenarioError, match=needle) as info:
+        load(path)
+    assert info.value.source == str(path) and info.value.field == "<document>"
+    # a gzip stream holding bad JSON is a JSON error, still naming the .gz file
+    bad = tmp_path / "bad_json.json.gz"
+    bad.write_bytes(gzip.compress(b'{"objects": ['))
+    with pytest.raises(ScenarioError, match="truncated JSON") as info:
+        load(bad)
+    assert "bad_json.json.gz" in str(info.value)
+
+
+def _gz_folder(tmp_path: Path) -> tuple[Path, dict[str, Scenario]]:
+    """Folder with a.json.gz, b.json (plain) and c.json.gz (bad: no roads)."""
+    folder = tmp_path / "gz"
+    folder.mkdir()
+    write_doc(folder / "a.json.gz", make_doc("scen-a", n_objects=5))
+    write_doc(folder / "b.json", make_doc("scen-b"))
+    bad = make_doc("scen-c")
+    bad["roads"] = []
+    write_doc(folder / "c.json.gz", bad)
+    return folder, {"a": load(folder / "a.json.gz"), "b": load(folder / "b.json")}
+
+
+def test_load_dir_reads_json_gz_and_caches_it(tmp_path: Path) -> None:
+    folder, expected = _gz_folder(tmp_path)
+    with pytest.warns(ScenarioLoadWarning, match="c.json.gz"):
+        scenarios, report = load_dir(folder)
+    assert scenarios == [expected["a"], expected["b"]]
+    assert report.loaded == [str(folder / "a.json.gz"), str(folder / "b.json")]
+    assert [p for p, _ in report.skipped] == [str(folder / "c.json.gz")]
+    # cache: <stem>.npz (not <stem>.json.npz), fresh against the .gz file
+    cache = tmp_path / "cache"
+    with pytest.warns(ScenarioLoadWarning):
+        _, rep1 = load_dir(folder, cache_dir=cache)
+    assert sorted(Path(p).name for p in rep1.written) == ["a.npz", "b.npz"]
+    with pytest.warns(ScenarioLoadWarning):
+        again, rep2 = load_dir(folder, cache_dir=cache)
+    assert rep2.written == [] and rep2.loaded == [str(cache / "a.npz"), str(cache / "b.npz")]
+    assert again == scenarios and again[0].source == str(folder / "a.json.gz")
+    write_doc(folder / "a.json.gz", make_doc("scen-a2", n_objects=4))  # edited: stale cache rebuilt
+    with pytest.warns(ScenarioLoadWarning):
+        third, rep3 = load_dir(folder, cache_dir=cache)
+    assert rep3.written == [str(cache / "a.npz")] and third[0].id == "scen-a2"
+    assert womd.scenario_files(folder) == [folder / "a.json.gz", folder / "b.json", folder / "c.json.gz"]
+
+
+def test_plain_json_wins_over_json_gz_of_the_same_stem(tmp_path: Path) -> None:
+    folder = tmp_path / "both"
+    folder.mkdir()
+    write_doc(folder / "x.json", make_doc("plain"))
+    write_doc(folder / "x.json.gz", make_doc("zipped"))
+    with pytest.warns(ScenarioLoadWarning, match="x.json.gz"):
+        scenarios, report = load_dir(folder)
+    assert [s.id for s in scenarios] == ["plain"] and report.loaded == [str(folder / "x.json")]
+    assert report.skipped == [(str(folder / "x.json.gz"), "x.json holds the same stem and is loaded instead")]
+
+
+def test_convert_dir_and_command_line_read_json_gz(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder, expected = _gz_folder(tmp_path)
+    with pytest.warns(ScenarioLoadWarning, match="c.json.gz"):
+        report = convert_dir(folder, tmp_path / "dst")
+    assert sorted(p.name for p in (tmp_path / "dst").iterdir()) == ["a.npz", "b.npz"]
+    assert report.loaded == [str(folder / "a.json.gz"), str(folder / "b.json")]
+    assert load(tmp_path / "dst" / "a.npz") == expected["a"]
+    with pytest.warns(ScenarioLoadWarning):
+        again = convert_dir(folder, tmp_path / "dst")
+    assert again.written == []  # fresh against the .gz
+    with pytest.warns(ScenarioLoadWarning):
+        code = womd.main(["convert", str(folder), str(tmp_path / "cli")])
+    assert code == 1 and "c.json.gz" in capsys.readouterr().out
+    assert load(tmp_path / "cli" / "a.npz") == expected["a"]
+    only_gz = tmp_path / "only_gz"
+    only_gz.mkdir()
+    write_doc(only_gz / "z.json.gz", make_doc("zed"))
+    assert womd.main(["convert", str(only_gz), str(tmp_path / "cli2")]) == 0
+    rows = womd.bench_load(only_gz, repeat=1)
+    assert [r["file"] for r in rows] == ["z.json.gz"] and rows[0]["json_ms"] > 0
+
+
+# ----------------------------------------------------------------------------- duplicate object ids
+def test_duplicate_object_id_raises_naming_file_and_id(tmp_path: Path) -> None:
+    doc = make_doc()
+    doc["objects"][4]["id"] = 102  # objects[2] has id 102
+    for name in ("dup.json", "dup.json.gz"):
+        path = write_doc(tmp_path / name, doc)
+        with pytest.raises(ScenarioError) as info:
+            load(path)
+        assert info.value.source == str(path) and info.value.field == "objects[4].id"
+        assert str(info.value) == (f"{path}: field 'objects[4].id': duplicate object id 102 "
+                                   "(objects[2] has the same id)")
+
+
+def test_duplicate_with_a_default_id_says_so(tmp_path: Path) -> None:
+    doc = make_doc()
+    doc["objects"][0]["id"] = 3  # collides with objects[3], which has no id (default: its index)
+    del doc["objects"][3]["id"]
+    with pytest.raises(ScenarioError, match=r"duplicate object id 3 \(objects\[0\] has the same id; "
+                                            r"objects\[3\] has no 'id'") as info:
+        load(write_doc(tmp_path / "default.json", doc))
+    assert "default.json" in str(info.value)
+
+
+def test_load_dir_reports_a_duplicate_id_file_and_loads_the_rest(tmp_path: Path) -> None:
+    folder = tmp_path / "dups"
+    folder.mkdir()
+    doc = make_doc("has-dups")
+    doc["objects"][1]["id"] = doc["objects"][0]["id"]
+    write_doc(folder / "a.json.gz", doc)
+    write_doc(folder / "b.json", make_doc("fine"))
+    with pytest.warns(ScenarioLoadWarning, match="duplicate object id 100"):
+        scenarios, report = load_dir(folder)
+    assert [s.id for s in scenarios] == ["fine"]
+    assert report.skipped[0][0] == str(folder / "a.json.gz") and "objects[1].id" in report.skipped[0][1]
+
+
+def test_cache_with_duplicate_ids_is_rejected(tmp_path: Path) -> None:
+    s = load(write_doc(tmp_path / "ok.json", make_doc()))
+    ids = np.array(s.agent_ids)
+    ids[5] = ids[0]
+    path = save_cache(dataclasses.replace(s, agent_ids=ids), tmp_path / "dup.npz")
+    with pytest.raises(ScenarioError, match="dup.npz: field 'agent_ids': duplicate object id 100"):
+        load(path)
+
+
+# ----------------------------------------------------------------------------- envs on a WOMD folder
+def _env_folder(tmp_path: Path) -> Path:
+    folder = tmp_path / "envs"
+    folder.mkdir()
+    write_doc(folder / "one.json.gz", make_doc("one"))
+    write_doc(folder / "two.json", make_doc("two", n_objects=5))
+    return folder
+
+
+def _step_selfplay(folder: Path, **kwargs: Any) -> cpsim.SelfPlayVecEnv:
+    env = cpsim.SelfPlayVecEnv(womd_dir=str(folder), num_worlds=2, max_agents=8, seed=0, **kwargs)
+    obs = env.reset()
+    assert obs.shape == (env.num_envs, env.observation_space.shape[0]) and env.active_mask().any()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        obs, reward, done, infos = env.step(rng.integers(0, env.action_space.n, env.num_envs))
+        assert np.isfinite(obs).all() and np.isfinite(reward).all() and len(infos) == env.num_envs
+    return env
+
+
+def _step_drive(folder: Path, **kwargs: Any) -> tuple[Any, dict]:
+    from cpsim.envs.drive import DriveEnv
+
+    env = DriveEnv(womd_dir=str(folder), regime="replay", seed=0, **kwargs)
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    for _ in range(3):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert np.isfinite(obs).all() and np.isfinite(reward)
+    return env, info
+
+
+def test_selfplay_and_drive_env_on_a_womd_folder(tmp_path: Path) -> None:
+    folder = _env_folder(tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ScenarioLoadWarning)  # nothing is skipped
+        env = _step_selfplay(folder)
+        assert [s.id for s in env.scenarios] == ["one", "two"]
+        assert [s.id for s in _step_selfplay(folder, num_scenarios=1).scenarios] == ["one"]
+        drive, info = _step_drive(folder)
+    assert info["scenario_id"] in {"one", "two"} and info["step"] == 3
+    assert [s.id for s in drive.core.scenarios] == ["one", "two"]
+    with pytest.raises(ScenarioError, match="folder does not exist"):
+        cpsim.SelfPlayVecEnv(womd_dir=str(tmp_path / "missing"))
+
+
+@needs_womd_gz
+def test_selfplay_and_drive_env_on_real_json_gz_scenes(tmp_path: Path) -> None:
+    folder = tmp_path / "real"
+    folder.mkdir()
+    # the two smallest files (model build time grows with the road network); symlinks, so
+    # the data stays in the shared folder
+    for p in sorted(WOMD_TRAIN.glob("*.json.gz"), key=lambda q: (q.stat().st_size, q.name))[:2]:
+        (folder / p.name).symlink_to(p)
+    env = _step_selfplay(folder)
+    assert len(env.scenarios) == 2 and all(s.family == "womd" for s in env.scenarios)
+    _step_drive(folder, max_agents=16)
+
+
+# ----------------------------------------------------------------------------- real .json.gz folders
+@needs_womd_gz
+def test_real_json_gz_folders_load_and_convert(tmp_path: Path) -> None:
+    counts = {}
+    for folder in (WOMD_TRAIN, WOMD_VALID):
+        scenarios, report = load_dir(folder)
+        assert report.ok and all(p.endswith(".json.gz") for p in report.loaded)
+        assert len({s.id for s in scenarios}) == len(scenarios)
+        assert all(len(set(s.agent_ids.tolist())) == s.num_agents for s in scenarios)
+        assert all(s.tracks_to_predict.size > 0 for s in scenarios)
+        counts[folder.name] = len(scenarios)
+    assert counts == {"train": 40, "valid": 100}
+    # the .npz cache of a .json.gz: same scenario, source kept, fresh on the second call
+    first, rep = load_dir(WOMD_TRAIN, cache_dir=tmp_path)
+    assert len(rep.written) == 40 and sorted(p.name for p in tmp_path.iterdir())[0].endswith(".npz")
+    cached, rep2 = load_dir(WOMD_TRAIN, cache_dir=tmp_path)
+    assert rep2.written == [] and cached == first and cached[0].source.endswith(".json.gz")
