@@ -5,13 +5,31 @@ See ``docs/ARCHITECTURE.md`` (Simulator) for the public contract. Layout of a st
 1. ``idm_kernel`` (only when some agent is on IDM): IDM accelerations from current poses;
 2. ``dynamics_kernel``: every controller moves its agent (policy actions, log replay, IDM,
    static); replayed agents whose log ends vanish;
-3. ``events_kernel``: collisions, off-road, goal, lanes, outcome, metrics, reward, removal,
-   timeout;
-4. ``finish_kernel``: step counter, ``world_done``;
-5. ``observation_kernel``: the next observation.
+3. ``prepare_kernel`` (per world): heading (cos, sin) of the present agents and the roster
+   of present and tracked slots;
+4. ``events_kernel``: collisions, off-road, goal, lanes, outcome, metrics, reward, removal,
+   timeout (every event and metric for tracked agents; scenery, i.e. REPLAY / STATIC agents
+   without a task, gets collisions with tracked agents, off-road, goal and timeout only; see
+   ``track_all``);
+5. ``finish_kernel``: step counter, ``world_done``;
+6. ``observation_kernel``: the next observation.
+
+All six are recorded launches (their arguments never change). A reset is two recorded
+launches (``reset_kernel`` and the observation of the reset worlds) over staging buffers
+written in place: no per-reset allocation or upload.
 
 Outputs are torch tensors that are zero-copy views of the Warp state (torch is imported
 here only, never in kernels); they are overwritten by the next ``step`` / ``reset``.
+
+Threads: Warp's CPU kernels run serially on the calling thread (one core). On CPU the step
+path (``step``, ``reset``, ``policy_mask``, the action checks) runs no torch operator: the
+checks, the action copy and the masks use NumPy views of the Warp arrays, so the simulator
+never waits on torch's intra-op thread pool, whatever ``torch.get_num_threads()`` is (on a
+machine shared with other jobs that pool waits for descheduled threads at every parallel
+operator: 10-27 ms each was measured on a loaded 2-core machine once W*A passed torch's
+parallel grain of 32,768 elements). The torch thread count is thus the caller's choice for
+its own torch work (the policy: ``cpalgo``'s ``--threads``, ``EvalConfig.torch_threads``).
+On CUDA the same checks and masks are torch operators on the device.
 """
 
 from __future__ import annotations
@@ -58,8 +76,29 @@ class Snapshot:
         return state_to_numpy(self.state)
 
 
+#: Index of ``force`` among observation_kernel's arguments (set per recorded launch).
+_OBS_FORCE_ARG = 10
+
+
 def _is_torch(x: Any) -> bool:
     return isinstance(x, torch.Tensor)
+
+
+class _Staging:
+    """A device buffer written in place from host data (a NumPy view on CPU, a torch copy on
+    CUDA): the recorded launches that read it never see a new array."""
+
+    def __init__(self, shape: tuple[int, ...], dtype: Any, device: str):
+        self.array = wp.zeros(shape, dtype=dtype, device=device)
+        self._host = self.array.numpy() if self.array.device.is_cpu else None
+        self._torch = None if self._host is not None else wp.to_torch(self.array)
+
+    def put(self, values: np.ndarray) -> None:
+        n = values.shape[0]
+        if self._host is not None:
+            self._host[:n] = values
+        else:
+            self._torch[:n].copy_(torch.from_numpy(np.ascontiguousarray(values)))
 
 
 class Simulator:
@@ -73,10 +112,23 @@ class Simulator:
         config: :class:`SimConfig` or a dict of its fields.
         device: "cpu" or "cuda[:N]".
         seed: seed of the NumPy generator used for scenario draws and p_train conditions.
+        track_all: compute every event and metric for every agent. By default (False) only
+            *tracked* agents get them: POLICY and IDM agents, task agents (controllable at
+            reset, whatever their controller now), slot 0 (the ego), and everyone with
+            ``config.observe_all``. *Scenery* (REPLAY / STATIC agents without a task: parked
+            cars, pedestrians, replayed traffic without a goal) is tested for collisions with
+            tracked agents only (so the ego or a co-player hitting it is recorded on both
+            sides: ``first_collision_step``, ``collision_partner``, outcome, fault), for
+            off-road, goal and timeout; its lane fields, metrics accumulators and reward stay
+            0. Co-player harm (other vehicles that collided or went off-road) is therefore
+            exact for everything the tracked agents do; only collisions between two scenery
+            agents (both following their logs, so no agent's doing) go unrecorded. Set True
+            for log statistics over every agent (``python -m cpsim.bench``'s replay sanity).
     """
 
     def __init__(self, scenarios: Sequence[Scenario] | Model, num_worlds: int, max_agents: int,
-                 config: SimConfig | dict | None = None, device: str = "cpu", seed: int = 0):
+                 config: SimConfig | dict | None = None, device: str = "cpu", seed: int = 0,
+                 track_all: bool = False):
         for name, value in (("num_worlds", num_worlds), ("max_agents", max_agents)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name}: must be a positive integer, got {value!r}")
@@ -89,6 +141,13 @@ class Simulator:
         except Exception as exc:  # unknown or unavailable device
             raise ValueError(f"device: {device!r} is not available ({exc})") from None
         self.device = str(wp_device)
+        self._cpu = bool(wp_device.is_cpu)
+        # Per-agent kernels with a large body come in two launch shapes: one thread per agent
+        # (CUDA) or one thread per world looping over its slots (CPU, where every thread
+        # copies the State / ModelArrays arguments on entry). Same function, same results.
+        self._events_kernel = K.metrics.events_world_kernel if self._cpu else K.metrics.events_kernel
+        self._obs_kernel = K.observation.observation_world_kernel if self._cpu else K.observation.observation_kernel
+        self.track_all = bool(track_all)
         self._torch_device = wp.device_to_torch(wp_device)
         if wp_device.is_cuda:
             # launch on torch's current stream so torch reads of the zero-copy outputs are
@@ -115,15 +174,27 @@ class Simulator:
         self._sel_idx = wp.zeros((W, A, kp), dtype=wp.int32, device=self.device)
         self._sel_d2 = wp.zeros((W, A, kp), dtype=wp.float32, device=self.device)
         self._obs_clear = wp.zeros((W, A), dtype=wp.bool, device=self.device)
-        self._obs_filled = wp.zeros((W, A, 3), dtype=wp.int32, device=self.device)
+        # (partners, road segments, grid cell) written last per row: nothing yet, no cell
+        filled = np.zeros((W, A, 3), np.int32)
+        filled[..., 2] = -1
+        self._obs_filled = wp.array(filled, dtype=wp.int32, device=self.device)
         self._trig = wp.zeros((W, A), dtype=wp.vec2f, device=self.device)
+        self._prev_trig = wp.zeros((W, A), dtype=wp.vec2f, device=self.device)
+        self._present_idx = wp.zeros((W, A), dtype=wp.int32, device=self.device)
+        self._tracked_idx = wp.zeros((W, A), dtype=wp.int32, device=self.device)
+        self._roster_n = wp.zeros((W, 2), dtype=wp.int32, device=self.device)
         self._all_worlds = wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=self.device)
         self._build_slot_tables()
+        # reset staging: worlds, scenarios, conditions (written in place, read by recorded launches)
+        self._reset_worlds = _Staging((W,), wp.int32, self.device)
+        self._reset_scen = _Staging((W,), wp.int32, self.device)
+        self._reset_cond = _Staging((W, A, NUM_CONDITION_FIELDS), wp.float32, self.device)
         self._make_views()
         self._has_idm = False
         self._step_launches = None
-        self._index_buffers: dict[int, wp.array] = {}
-        self._index_views: dict[int, torch.Tensor] = {}
+        self._reset_launch = None
+        self._obs_launches: dict[int, tuple[Any, Any, wp.array]] = {}
+        self._index_buffers: dict[int, _Staging] = {}
         self._arange: wp.array | None = None
         self.reset()
 
@@ -141,6 +212,11 @@ class Simulator:
             self._slot_table[g, :order.size] = order
             self._ctrl_table[g, :order.size] = np.where(ctrl, default, other)
             self._task_table[g, :order.size] = ctrl
+        # device copies, uploaded once: reset_kernel reads them by scenario index
+        dev = self.device
+        self._slot_table_wp = wp.array(self._slot_table, dtype=wp.int32, device=dev)
+        self._ctrl_table_wp = wp.array(self._ctrl_table, dtype=wp.int32, device=dev)
+        self._task_table_wp = wp.array(self._task_table, dtype=wp.bool, device=dev)
 
     def _make_views(self) -> None:
         s = self.state
@@ -174,12 +250,26 @@ class Simulator:
             self.reward_terms[f"w_{name}"] = wtd[..., i]
         self.metrics: dict[str, torch.Tensor] = {name: t(getattr(s, name)) for name in METRIC_FIELDS}
         self._actions_t = t(self.control.actions)
+        # NumPy views of the same memory (CPU only): the step path's host work uses these
+        self._actions_np = self.control.actions.numpy() if self._cpu else None
+        self._alive_np = s.alive.numpy() if self._cpu else None
+        self._ctrl_np = s.controller.numpy() if self._cpu else None
 
     # ------------------------------------------------------------------ properties
     @property
     def policy_mask(self) -> torch.Tensor:
-        """(W, A) bool: alive agents driven by the policy."""
+        """(W, A) bool: alive agents driven by the policy (a new tensor; on CPU computed with
+        NumPy, no torch operator)."""
+        if self._cpu:
+            return torch.from_numpy(self._alive_np & (self._ctrl_np == int(Controller.POLICY)))
         return self.alive & (self.controllers == int(Controller.POLICY))
+
+    def num_policy_agents(self) -> int:
+        """Number of alive POLICY agents over all worlds (``policy_mask.sum()`` without a
+        torch reduction on CPU)."""
+        if self._cpu:
+            return int(np.count_nonzero(self._alive_np & (self._ctrl_np == int(Controller.POLICY))))
+        return int(self.policy_mask.sum())
 
     @property
     def scenarios(self) -> list[Scenario]:
@@ -223,19 +313,50 @@ class Simulator:
         c = validate_conditions(np.asarray(conditions, dtype=np.float32), argument)
         return self._per_world_agents(c, n, argument, (NUM_CONDITION_FIELDS,)).astype(np.float32)
 
-    def _validate_actions(self, actions: Any) -> torch.Tensor:
+    def _actions_error(self, lo: int, hi: int) -> ValueError:
+        return ValueError(f"actions: values must lie in [0, {self.num_actions}) for "
+                          f"{self.config.dynamics} dynamics, got range [{lo}, {hi}]")
+
+    def _write_actions(self, actions: Any) -> None:
+        """Check ``actions`` and copy them into the int32 control array (nothing is written
+        when a check fails). On CPU with NumPy: no torch operator over W*A."""
         W, A = self.num_worlds, self.max_agents
         if _is_torch(actions):
             t = actions.detach()
+            if t.dtype == torch.bool or t.is_complex():
+                raise ValueError(f"actions: expected integer action indices, got dtype {t.dtype}")
+            if t.device.type != "cpu":
+                self._write_actions_torch(t)
+                return
+            arr = t.numpy()
         else:
             arr = np.asarray(actions)
             if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
                 raise ValueError(f"actions: expected a numeric array, got dtype {arr.dtype}")
-            t = torch.from_numpy(np.ascontiguousarray(arr))
+        if arr.shape not in ((W, A), (W * A,)):
+            raise ValueError(f"actions: expected shape ({W}, {A}) or ({W * A},), got {tuple(arr.shape)}")
+        if arr.dtype == np.bool_ or np.issubdtype(arr.dtype, np.complexfloating):
+            raise ValueError(f"actions: expected integer action indices, got dtype {arr.dtype}")
+        if np.issubdtype(arr.dtype, np.floating):
+            if not np.isfinite(arr).all():
+                raise ValueError("actions: contains NaN or infinite values")
+            if not (arr == np.round(arr)).all():
+                raise ValueError("actions: floating-point actions must hold integral values")
+        if arr.size:
+            lo, hi = arr.min(), arr.max()
+            if lo < 0 or hi >= self.num_actions:
+                raise self._actions_error(int(lo), int(hi))
+        arr = arr.reshape(W, A)
+        if self._cpu:
+            np.copyto(self._actions_np, arr, casting="unsafe")
+        else:
+            self._actions_t.copy_(torch.from_numpy(np.ascontiguousarray(arr, dtype=np.int32)))
+
+    def _write_actions_torch(self, t: torch.Tensor) -> None:
+        """Device tensors (CUDA): the same checks as torch operators on that device."""
+        W, A = self.num_worlds, self.max_agents
         if tuple(t.shape) not in ((W, A), (W * A,)):
             raise ValueError(f"actions: expected shape ({W}, {A}) or ({W * A},), got {tuple(t.shape)}")
-        if t.dtype == torch.bool or t.is_complex():
-            raise ValueError(f"actions: expected integer action indices, got dtype {t.dtype}")
         if t.is_floating_point():
             if not bool(torch.isfinite(t).all()):
                 raise ValueError("actions: contains NaN or infinite values")
@@ -244,33 +365,57 @@ class Simulator:
         if t.numel():
             lo, hi = int(t.min()), int(t.max())
             if lo < 0 or hi >= self.num_actions:
-                raise ValueError(f"actions: values must lie in [0, {self.num_actions}) for "
-                                 f"{self.config.dynamics} dynamics, got range [{lo}, {hi}]")
-        return t.reshape(W, A)
+                raise self._actions_error(lo, hi)
+        self._actions_t.copy_(t.reshape(W, A))
 
     # ------------------------------------------------------------------ launches
-    def _launch_obs(self, worlds_wp: wp.array, n: int, force: bool = True) -> None:
+    def _obs_dim(self, n: int) -> int | tuple[int, int]:
+        """Launch dimension of the observation kernel over ``n`` worlds (see __init__)."""
+        return n if self._cpu else (n, self.max_agents)
+
+    def _obs_launch_pair(self, worlds_wp: wp.array) -> tuple[Any, Any]:
+        """Recorded (heading_trig, observation) launches over the index buffer ``worlds_wp``
+        (dimension and ``force`` are set per call)."""
+        key = id(worlds_wp)
+        pair = self._obs_launches.get(key)
+        if pair is None or pair[2] is not worlds_wp:
+            dev, A = self.device, self.max_agents
+            trig = wp.launch(K.observation.heading_trig_kernel, dim=(1, A),
+                             inputs=[self.state, worlds_wp, self._trig], device=dev, record_cmd=True)
+            obs = wp.launch(self._obs_kernel, dim=self._obs_dim(1),
+                            inputs=[self.state, self.model.arrays, self._params, worlds_wp, self._obs,
+                                    self._sel_idx, self._sel_d2, self._obs_clear, self._obs_filled,
+                                    self._trig, 1], device=dev, record_cmd=True)
+            pair = (trig, obs, worlds_wp)
+            self._obs_launches[key] = pair
+        return pair[0], pair[1]
+
+    def _launch_obs(self, worlds_wp: wp.array, n: int, force: bool = True, trig: bool = True) -> None:
+        """Observation of the first ``n`` worlds listed in ``worlds_wp`` (after the heading
+        (cos, sin) pre-pass unless ``trig`` is False). ``force`` rewrites whole rows; without
+        it only entries that changed are written, which is exact as long as nobody wrote into
+        ``obs`` (rows hold what the kernel's bookkeeping says they hold)."""
         if n == 0:
             return
-        wp.launch(K.observation.heading_trig_kernel, dim=(n, self.max_agents),
-                  inputs=[self.state, worlds_wp, self._trig], device=self.device)
-        wp.launch(K.observation.observation_kernel, dim=(n, self.max_agents),
-                  inputs=[self.state, self.model.arrays, self._params, worlds_wp, self._obs,
-                          self._sel_idx, self._sel_d2, self._obs_clear, self._obs_filled, self._trig,
-                          int(force)], device=self.device)
+        trig_launch, obs_launch = self._obs_launch_pair(worlds_wp)
+        if trig:
+            trig_launch.set_dim((n, self.max_agents))
+            trig_launch.launch()
+        obs_launch.set_dim(self._obs_dim(n))
+        obs_launch.set_param_at_index(_OBS_FORCE_ARG, int(force))
+        obs_launch.launch()
 
     def _world_array(self, worlds: np.ndarray, slot: int = 0) -> wp.array:
         """Index buffer ``slot`` holding ``worlds`` in its first entries (kernels launched over
         len(worlds) read only those); reused across calls to avoid per-call allocations."""
         n = worlds.size
         buf = self._index_buffers.get(slot)
-        if buf is None or buf.shape[0] < n:
-            buf = wp.zeros(max(n, self.num_worlds), dtype=wp.int32, device=self.device)
+        if buf is None or buf.array.shape[0] < n:
+            buf = _Staging((max(n, self.num_worlds),), wp.int32, self.device)
             self._index_buffers[slot] = buf
-            self._index_views[slot] = wp.to_torch(buf)
         if n:
-            self._index_views[slot][:n].copy_(torch.from_numpy(np.ascontiguousarray(worlds, dtype=np.int32)))
-        return buf
+            buf.put(np.asarray(worlds, dtype=np.int32))
+        return buf.array
 
     def _arange_array(self, n: int) -> wp.array:
         if self._arange is None or self._arange.shape[0] < n:
@@ -278,14 +423,21 @@ class Simulator:
                                     device=self.device)
         return self._arange
 
+    def _controllers_np(self, worlds: np.ndarray | None = None) -> np.ndarray:
+        """Controllers of ``worlds`` (all when None) as NumPy (a view on CPU when all)."""
+        if self._cpu:
+            return self._ctrl_np if worlds is None else self._ctrl_np[worlds]
+        c = self.controllers if worlds is None else self.controllers[torch.as_tensor(
+            worlds.astype(np.int64), device=self._torch_device)]
+        return c.cpu().numpy()
+
     def _refresh_has_idm(self, worlds: np.ndarray | None = None) -> None:
         """Whether a step must run the IDM kernel. With ``worlds``, only those worlds changed
         (an IDM agent there switches it on; it stays on until the next full check)."""
         if worlds is None:
-            self._has_idm = bool((self.controllers == int(Controller.IDM)).any())
+            self._has_idm = bool((self._controllers_np() == int(Controller.IDM)).any())
         elif not self._has_idm:
-            idx = torch.as_tensor(worlds.astype(np.int64), device=self._torch_device)
-            self._has_idm = bool((self.controllers[idx] == int(Controller.IDM)).any())
+            self._has_idm = bool((self._controllers_np(worlds) == int(Controller.IDM)).any())
 
     # ------------------------------------------------------------------ public API
     def reset(self, worlds: Any = None, scenario_index: Any = None, conditions: Any = None) -> None:
@@ -323,24 +475,28 @@ class Simulator:
             scen = self._rng.integers(0, G, size=n).astype(np.int32)
         if cond is None:
             cond = sample_conditions(self._rng, (n, self.max_agents))
-        dev = self.device
-        w_wp = self._world_array(w)
-        wp.launch(K.snapshot.reset_kernel, dim=(n, self.max_agents),
-                  inputs=[self.state, self.model.arrays, self._params, w_wp,
-                          wp.array(scen, dtype=wp.int32, device=dev),
-                          wp.array(self._slot_table[scen], dtype=wp.int32, device=dev),
-                          wp.array(self._ctrl_table[scen], dtype=wp.int32, device=dev),
-                          wp.array(self._task_table[scen], dtype=wp.bool, device=dev),
-                          wp.array(cond, dtype=wp.float32, device=dev)], device=dev)
-        self._launch_obs(w_wp, n)
-        self._refresh_has_idm(None if n == self.num_worlds else w)
+        self._reset_worlds.put(w)
+        self._reset_scen.put(scen)
+        self._reset_cond.put(cond)
+        if self._reset_launch is None:
+            self._reset_launch = wp.launch(
+                K.snapshot.reset_kernel, dim=(1, self.max_agents),
+                inputs=[self.state, self.model.arrays, self._params, self._reset_worlds.array,
+                        self._reset_scen.array, self._slot_table_wp, self._ctrl_table_wp, self._task_table_wp,
+                        self._reset_cond.array, self._trig, int(self.track_all)],
+                device=self.device, record_cmd=True)
+        self._reset_launch.set_dim((n, self.max_agents))
+        self._reset_launch.launch()
+        # reset_kernel wrote the heading (cos, sin); rows not forced: exact (see _launch_obs)
+        self._launch_obs(self._reset_worlds.array, n, force=False, trig=False)
+        idm = bool((self._ctrl_table[scen] == int(Controller.IDM)).any())
+        self._has_idm = idm if n == self.num_worlds else (self._has_idm or idm)
 
     def step(self, actions: Any) -> None:
         """Advance every world by one decision. ``actions`` (W, A) (or (W*A,)) integer
         indices, NumPy or torch; only alive POLICY agents read them. Worlds whose episode is
         over (step_count == episode_steps) do not move; their done flags and rewards read 0."""
-        t = self._validate_actions(actions)
-        self._actions_t.copy_(t)
+        self._write_actions(actions)
         if self._step_launches is None:
             self._step_launches = self._record_step_launches()
         idm, rest = self._step_launches
@@ -354,6 +510,8 @@ class Simulator:
         arrays are allocated once), which skips most of wp.launch's per-call overhead."""
         dim = (self.num_worlds, self.max_agents)
         s, m, p, dev = self.state, self.model.arrays, self._params, self.device
+        track_all = int(self.track_all)
+        roster = [self._trig, self._prev_trig, self._present_idx, self._tracked_idx, self._roster_n]
 
         def rec(kernel, d, inputs):
             return wp.launch(kernel, dim=d, inputs=inputs, device=dev, record_cmd=True)
@@ -361,10 +519,10 @@ class Simulator:
         idm = rec(K.controllers.idm_kernel, dim, [s, m, p])
         rest = [
             rec(K.dynamics.dynamics_kernel, dim, [s, m, p, self.control.actions]),
-            rec(K.metrics.events_kernel, dim, [s, m, p]),
+            rec(K.observation.prepare_kernel, self.num_worlds, [s, p, track_all, *roster]),
+            rec(self._events_kernel, self.num_worlds if self._cpu else dim, [s, m, p, track_all, *roster]),
             rec(K.metrics.finish_kernel, self.num_worlds, [s, p, self._all_worlds, 1]),
-            rec(K.observation.heading_trig_kernel, dim, [s, self._all_worlds, self._trig]),
-            rec(K.observation.observation_kernel, dim,
+            rec(self._obs_kernel, self._obs_dim(self.num_worlds),
                 [s, m, p, self._all_worlds, self._obs, self._sel_idx, self._sel_d2, self._obs_clear,
                  self._obs_filled, self._trig, 0]),
         ]
@@ -377,8 +535,11 @@ class Simulator:
         cond = self._conditions(conditions, w.size)
         if w.size == 0:
             return
-        idx = torch.as_tensor(w.astype(np.int64), device=self._torch_device)
-        self.conditions[idx] = torch.as_tensor(cond, device=self._torch_device)
+        if self._cpu:
+            self.state.conditions.numpy()[w] = cond
+        else:
+            idx = torch.as_tensor(w.astype(np.int64), device=self._torch_device)
+            self.conditions[idx] = torch.as_tensor(cond, device=self._torch_device)
         self._launch_obs(self._world_array(w), w.size)
 
     def set_controllers(self, controllers: Any, worlds: Any = None) -> None:
@@ -398,14 +559,20 @@ class Simulator:
             raise ValueError(f"controllers: codes must lie in [0, {int(Controller.NONE)}]")
         if w.size == 0:
             return
-        idx = torch.as_tensor(w.astype(np.int64), device=self._torch_device)
-        occupied = (self.agent_index[idx] >= 0).cpu().numpy()
+        if self._cpu:
+            occupied = self.state.agent_index.numpy()[w] >= 0
+        else:
+            idx = torch.as_tensor(w.astype(np.int64), device=self._torch_device)
+            occupied = (self.agent_index[idx] >= 0).cpu().numpy()
         if np.any(occupied & (c == int(Controller.NONE))):
             raise ValueError("controllers: NONE is only valid for empty slots")
         new = np.where(occupied, c, int(Controller.NONE)).astype(np.int32)
-        old = self.controllers[idx].cpu().numpy()
+        old = self._controllers_np(w)
         attach = (new == int(Controller.IDM)) & (old != int(Controller.IDM))
-        self.controllers[idx] = torch.as_tensor(new, device=self._torch_device)
+        if self._cpu:
+            self._ctrl_np[w] = new
+        else:
+            self.controllers[idx] = torch.as_tensor(new, device=self._torch_device)
         w_wp = self._world_array(w)
         if attach.any():
             wp.launch(K.controllers.idm_attach_kernel, dim=(w.size, self.max_agents),

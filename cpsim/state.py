@@ -22,6 +22,8 @@ REWARD_TERMS: tuple[str, ...] = (
     "reverse", "step",
 )
 NUM_REWARD_TERMS = len(REWARD_TERMS)
+#: Positions kept per agent for the at-fault lane-divider rule (its last 4 positions).
+POS_HISTORY = 4
 
 #: Metric accumulators exposed as ``Simulator.metrics`` (each (W, A)).
 METRIC_FIELDS: tuple[str, ...] = (
@@ -53,9 +55,13 @@ class State:
     accel: wp.array2d(dtype=wp.float32)         # longitudinal acceleration, m/s^2
     lat_accel: wp.array2d(dtype=wp.float32)     # lateral acceleration, m/s^2
     jerk: wp.array2d(dtype=wp.float32)          # longitudinal jerk of the last step, m/s^3
+    lat_jerk: wp.array2d(dtype=wp.float32)      # lateral jerk of the last step, m/s^3
     steer: wp.array2d(dtype=wp.float32)         # steering angle, rad
     prev_pos: wp.array2d(dtype=wp.vec2f)        # pose before the last step (swept off-road test)
     prev_heading: wp.array2d(dtype=wp.float32)
+    prev_vel: wp.array2d(dtype=wp.vec2f)        # velocity before the last step (at-fault rules)
+    pos_hist: wp.array3d(dtype=wp.vec2f)        # (W, A, POS_HISTORY) ring of pre-step positions:
+                                                # slot step_count % POS_HISTORY = the last one
     size: wp.array2d(dtype=wp.vec2f)            # logged (length, width), m
     agent_type: wp.array2d(dtype=wp.int32)      # AgentType
     goal: wp.array2d(dtype=wp.vec2f)            # m
@@ -107,6 +113,8 @@ def allocate_state(num_worlds: int, max_agents: int, device: str) -> State:
             shape = (W, A, NUM_CONDITION_FIELDS)
         elif name in ("reward_raw", "reward_w"):
             shape = (W, A, NUM_REWARD_TERMS)
+        elif name == "pos_hist":
+            shape = (W, A, POS_HISTORY)
         else:
             shape = (W, A)
         setattr(s, name, wp.zeros(shape, dtype=dtype, device=device))
@@ -134,5 +142,5 @@ class Control:
         return cls(actions=wp.zeros((num_worlds, max_agents), dtype=wp.int32, device=device))
 
 
-__all__ = ["State", "Control", "REWARD_TERMS", "NUM_REWARD_TERMS", "METRIC_FIELDS",
+__all__ = ["State", "Control", "REWARD_TERMS", "NUM_REWARD_TERMS", "METRIC_FIELDS", "POS_HISTORY",
            "allocate_state", "state_to_numpy", "state_field_names"]

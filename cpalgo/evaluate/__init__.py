@@ -1,7 +1,7 @@
 """BehaviorBench-style evaluation of driving policies over traffic regimes.
 
-* :mod:`cpalgo.evaluate.metrics`: per-task metrics, score, at-fault rules, outcome classes
-  (pure NumPy).
+* :mod:`cpalgo.evaluate.metrics`: per-task metrics, score, outcome classes (pure NumPy;
+  at-fault collisions come from the simulator's kernel, ``cpsim.kernels.geometry``).
 * :mod:`cpalgo.evaluate.runner`: ``evaluate(policy, tasks, regimes, ...)``, batched through
   one :class:`cpsim.Simulator`.
 * :mod:`cpalgo.evaluate.tables` / :mod:`cpalgo.evaluate.plots`: Markdown/JSON/CSV tables and
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from cpsim._lazy import lazy_exports
 
-from cpalgo.evaluate.metrics import OutcomeClass, CollisionType, task_score, outcome_class
+from cpalgo.evaluate.metrics import OutcomeClass, task_score, outcome_class
 
 _LAZY = {
     "evaluate": "cpalgo.evaluate.runner",
@@ -30,4 +30,4 @@ _LAZY = {
 
 __getattr__, __dir__ = lazy_exports("cpalgo.evaluate", _LAZY, globals())
 
-__all__ = ["OutcomeClass", "CollisionType", "task_score", "outcome_class", *_LAZY]
+__all__ = ["OutcomeClass", "task_score", "outcome_class", *_LAZY]

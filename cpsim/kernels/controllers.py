@@ -6,8 +6,9 @@ Model for speed:
 
     a = a_max (1 - (v / v0)^4 - (s* / gap)^2),  s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b)))
 
-clipped to [-8, a_max]; v0 = the agent's largest logged speed (0 for agents whose log moves
-less than 1 m: they stay put). The leader is the nearest live agent whose centre lies
+clipped to [-8, a_max]. Parameters (``SimConfig.idm_*``, BehaviorBench's defaults): v0 = 15 m/s
+(``idm_v0``; 0 selects each agent's largest logged speed), jam gap s0 = 1 m, headway T = 1.5 s,
+a_max = 1.0 m/s^2, b = 3.0 m/s^2. Agents whose log moves less than 1 m stay put (v0 = 0). The leader is the nearest live agent whose centre lies
 within half the two widths + 0.3 m of the path ahead (up to ``idm_lookahead`` m);
 gap = arc distance - half the two lengths, dv = v - (leader velocity along the path).
 Crossing agents: a moving agent (> 0.5 m/s) off the path whose next 3 s of straight-line
@@ -138,7 +139,9 @@ def idm_kernel(state: State, model: ModelArrays, params: Params):
     s_i = state.idm_s[w, a]
     k_i = state.idm_k[w, a]
     v = wp.max(state.speed[w, a], 0.0)
-    v0 = model.idm_v0[row]
+    v0 = model.idm_v0[row]  # the largest logged speed; 0 for agents parked in their log
+    if v0 > 0.0 and params.idm_v0 > 0.0:
+        v0 = params.idm_v0
     pi = state.pos[w, a]
     hi = state.heading[w, a]
     fwd = wp.vec2f(wp.cos(hi), wp.sin(hi))

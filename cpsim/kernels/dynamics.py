@@ -25,17 +25,30 @@ a_long = -5 that only ~13 full-throttle steps could unwind (and the next steps r
 Here a zero command means zero curvature and a refused speed change zeroes a_long.
 
 Classic bicycle (GPUDrive / PufferDrive 2.0; 91 actions, index = accel_idx * 13 + steer_idx
-over accel {-4, -2.667, -1.333, 0, 1.333, 2.667, 4} m/s^2 x steer linspace(-1, 1, 13) rad),
-identical to PufferDrive step for step:
+over accel {-4, -2.667, -1.333, 0, 1.333, 2.667, 4} m/s^2 x PufferDrive's rounded steering
+table +-{0.167, 0.333, 0.5, 0.667, 0.833, 1} and 0 rad), identical to PufferDrive's
+``move_dynamics`` step for step (``tests/cpsim/test_sim_dynamics.py`` replays its own float32
+trajectories, ``../shared/data/pufferdrive/classic_kinematics.csv``):
 
-    v = |velocity|;  v' = clip(v + a dt, -100, 100);  beta = tanh(0.5 tan(delta))
-    yaw_rate = v cos(beta) tan(delta) / length   (the speed before the update)
+    v = |velocity|;  v' = clip(v + a dt, -100, 100)   (v' signed: it may become negative)
+    beta = tanh(0.5 tan(delta))
+    yaw_rate = v' cos(beta) tan(delta) / (box_scale x length)   (the updated, signed speed)
     velocity = v' (cos, sin)(heading + beta);  position += velocity dt;
     heading = wrap(heading + yaw_rate dt)
 
+PufferDrive multiplies the length of the agents it controls by 0.7 at load, so its yaw rate
+divides by 0.7 x the logged length on WOMD; here the divisor follows ``SimConfig.box_scale``
+(the same shrink used for collision and off-road geometry), so ``box_scale=0.7`` matches
+PufferDrive and the default 1.0 divides by the logged length. As in PufferDrive, the next
+step starts from |velocity| again, so a car pushed below zero speed oscillates around
+|v| = a dt rather than reversing steadily.
+
 Reported for metrics: a_long = the new longitudinal acceleration (jerk: state; classic: the
 command; replay / IDM: finite difference of the signed speed), a_lat (jerk: state; others:
-speed x yaw rate), jerk = (a_long' - a_long) / dt.
+speed x yaw rate), jerk = (a_long' - a_long) / dt, lateral jerk = (a_lat' - a_lat) / dt.
+Before moving, the kernel keeps the pose and velocity of the step's start (``prev_pos``,
+``prev_heading``, ``prev_vel``) and writes the position into the ring ``pos_hist`` (slot
+step_count % 4): the at-fault rules classify a contact from the state one step before it.
 """
 
 from __future__ import annotations
@@ -119,11 +132,12 @@ def jerk_step(pos: wp.vec2f, heading: float, vel: wp.vec2f, a_long: float, a_lat
 @wp.func
 def classic_step(pos: wp.vec2f, heading: float, vel: wp.vec2f, length: float, accel: float,
                  steering: float, dt: float):
-    """One classic bicycle step. Returns (pos, heading, vel, signed speed, yaw rate)."""
+    """One classic bicycle step (``length``: the length the yaw rate divides by, i.e.
+    box_scale x the logged length). Returns (pos, heading, vel, signed speed, yaw rate)."""
     speed = wp.length(vel)
     speed_new = wp.clamp(speed + accel * dt, -100.0, 100.0)
     beta = wp.tanh(0.5 * wp.tan(steering))
-    yaw_rate = speed * wp.cos(beta) * wp.tan(steering) / length
+    yaw_rate = speed_new * wp.cos(beta) * wp.tan(steering) / length
     new_vel = wp.vec2f(speed_new * wp.cos(heading + beta), speed_new * wp.sin(heading + beta))
     new_pos = pos + new_vel * dt
     new_heading = wrap_angle(heading + yaw_rate * dt)
@@ -163,13 +177,16 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
     old_accel = state.accel[w, a]
     state.prev_pos[w, a] = pos
     state.prev_heading[w, a] = heading
+    state.prev_vel[w, a] = vel
+    state.pos_hist[w, a, state.step_count[w] % state.pos_hist.shape[2]] = pos
     length = state.size[w, a][0]
+    old_lat = state.lat_accel[w, a]
     new_pos = pos
     new_heading = heading
     new_vel = vel
     new_speed = old_speed
     new_accel = old_accel
-    new_lat = state.lat_accel[w, a]
+    new_lat = old_lat
     new_steer = state.steer[w, a]
     if ctrl == POLICY:
         act = actions[w, a]
@@ -182,7 +199,8 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
             acc = _CLASSIC_ACCEL[act // 13]
             st = _CLASSIC_STEER[act % 13]
             yaw = float(0.0)
-            new_pos, new_heading, new_vel, new_speed, yaw = classic_step(pos, heading, vel, length, acc, st, dt)
+            new_pos, new_heading, new_vel, new_speed, yaw = classic_step(
+                pos, heading, vel, length * params.box_scale, acc, st, dt)
             new_accel = acc
             new_lat = new_speed * yaw
             new_steer = st
@@ -231,6 +249,7 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
     state.vel[w, a] = new_vel
     state.speed[w, a] = new_speed
     state.jerk[w, a] = (new_accel - old_accel) / dt
+    state.lat_jerk[w, a] = (new_lat - old_lat) / dt
     state.accel[w, a] = new_accel
     state.lat_accel[w, a] = new_lat
     state.steer[w, a] = new_steer
@@ -279,11 +298,13 @@ def jerk_step_np(x, y, heading, vx, vy, a_long, a_lat, steer, length, j_long, j_
 
 
 def classic_step_np(x, y, heading, vx, vy, length, accel, steering, dt=0.1):
-    """Reference classic (PufferDrive) step in float64; returns a dict of the new state."""
+    """Reference classic (PufferDrive) step in float64; returns a dict of the new state.
+
+    ``length`` is the length the yaw rate divides by (box_scale x the logged length)."""
     speed = math.hypot(vx, vy)
     sn = float(np.clip(speed + accel * dt, -CLASSIC_SPEED_LIMIT, CLASSIC_SPEED_LIMIT))
     beta = math.tanh(0.5 * math.tan(steering))
-    yaw = speed * math.cos(beta) * math.tan(steering) / length
+    yaw = sn * math.cos(beta) * math.tan(steering) / length
     vxn, vyn = sn * math.cos(heading + beta), sn * math.sin(heading + beta)
     return {"x": x + vxn * dt, "y": y + vyn * dt, "heading": float(wrap(heading + yaw * dt)),
             "vx": vxn, "vy": vyn, "speed": sn, "yaw_rate": yaw}

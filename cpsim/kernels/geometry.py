@@ -1,4 +1,4 @@
-"""Geometry as Warp functions, with pure NumPy references used by tests and evaluation.
+"""Geometry as Warp functions, with pure NumPy references used by tests.
 
 Conventions: boxes are (centre (x, y), heading h, length L, width W); the box frame has x
 forward, y to the left. Corners are ordered front-left, front-right, rear-right, rear-left.
@@ -10,15 +10,35 @@ forward, y to the left. Corners are ordered front-left, front-right, rear-right,
   previous to the current pose (swept test, no tunnelling).
 * Lanes: the nearest lane segment (point-to-segment distance) within ``lane_radius``;
   heading error = wrap(heading - lane direction); lateral offset signed, left positive.
-* Collision cases and fault (nuPlan, as in ``cpalgo.evaluate.metrics``), tested in order:
+* Lane distance (metrics): the true distance to the nearest lane centreline, by a ring
+  search over the grid when no lane lies within ``lane_radius`` (:func:`lane_distance`).
+* Collision cases and fault (BehaviorBench's classifier, nuPlan / PDM style), classified from
+  the state one step before contact (pre-step poses and velocities of both agents), tested
+  in order:
 
-  0 STOPPED_EGO   the agent's |speed| <= 0.05 m/s            -> not at fault
-  1 STOPPED_TRACK the other's |speed| <= 0.05 m/s             -> at fault
-  2 ACTIVE_REAR   the other's centre bears > 150 deg from the agent's heading -> not at fault
-  3 ACTIVE_FRONT  the agent's front edge touches the other box -> at fault
-  4 ACTIVE_LATERAL otherwise -> at fault only when the agent spans two lanes (its corners'
-                  nearest lane centrelines within ``lane_radius`` belong to different lane
-                  polylines; corners with no lane near are ignored).
+  5 VULNERABLE     the other is a pedestrian or cyclist             -> at fault
+  0 STOPPED_EGO    the agent's speed <= 0.05 m/s                     -> not at fault
+  1 STOPPED_TRACK  the other's speed <= 0.05 m/s                     -> at fault
+  2 ACTIVE_REAR    the other's centre bears > 150 deg from the agent's heading
+                   (it approached from behind)                       -> at fault only when straddling
+  3 ACTIVE_FRONT   bearing < 60 deg and closing speed > 0.5 m/s      -> at fault
+  4 ACTIVE_LATERAL otherwise                                         -> at fault only when straddling
+
+  Bearing: the angle between the agent's heading and the direction from its centre to the
+  other's centre. Closing speed: (v_agent - v_other) . that direction (the rate at which the
+  centres approach). Straddling a lane divider: over the agent's last 4 positions (the
+  pre-contact one and the three before it; fewer at the start of an episode, the first one
+  repeated), its centre came within width/2 + 1.75 m of at least two distinct lane
+  centrelines (lane polylines; the union over the four positions), and its lateral drift,
+  the displacement from the oldest to the newest of those positions across its pre-contact
+  heading, exceeds 0.3 m. The reach is capped at ``lane_radius`` (the grid's lane lists are
+  exact up to it; 4 m covers boxes up to 4.5 m wide). The width is the collision box's
+  (``box_scale`` applied).
+
+  The kernel (:func:`collision_kind`, :func:`straddles_divider`, :func:`kind_at_fault`) is
+  the only implementation used by the simulator and the evaluation; the NumPy functions at
+  the end (:func:`classify_collision`, :func:`straddles_divider_np`, :func:`classify_fault`)
+  are references for tests.
 """
 
 from __future__ import annotations
@@ -32,14 +52,29 @@ from cpsim.model import ModelArrays
 
 PI = wp.constant(math.pi)
 TWO_PI = wp.constant(2.0 * math.pi)
-#: nuPlan's stopped-speed threshold (m/s) and "behind" bearing (deg).
+#: BehaviorBench's at-fault thresholds: stopped speed (m/s), "behind" and "front" bearings
+#: (deg), closing speed of a front collision (m/s), lane-divider reach beyond half the
+#: width (m), lateral drift of a straddling ego (m), positions looked back over.
 STOPPED_SPEED = 0.05
 BEHIND_DEG = 150.0
+FRONT_DEG = 60.0
+FRONT_CLOSING_SPEED = 0.5
+DIVIDER_REACH = 1.75
+DIVIDER_DRIFT = 0.3
+DIVIDER_POSITIONS = 4
+#: Distance recorded by :func:`lane_distance` when the scenario's grid holds no lane at all, m.
+NO_LANE_DISTANCE = 1000.0
 WP_STOPPED_SPEED = wp.constant(STOPPED_SPEED)
 WP_COS_BEHIND = wp.constant(math.cos(math.radians(BEHIND_DEG)))
+WP_COS_FRONT = wp.constant(math.cos(math.radians(FRONT_DEG)))
+WP_FRONT_CLOSING = wp.constant(FRONT_CLOSING_SPEED)
+WP_DIVIDER_REACH = wp.constant(DIVIDER_REACH)
+WP_DIVIDER_DRIFT = wp.constant(DIVIDER_DRIFT)
+WP_NO_LANE_DISTANCE = wp.constant(NO_LANE_DISTANCE)
 
-STOPPED_EGO, STOPPED_TRACK, ACTIVE_REAR, ACTIVE_FRONT, ACTIVE_LATERAL = range(5)
-COLLISION_KIND_NAMES = ("stopped_ego", "stopped_track", "active_rear", "active_front", "active_lateral")
+STOPPED_EGO, STOPPED_TRACK, ACTIVE_REAR, ACTIVE_FRONT, ACTIVE_LATERAL, VULNERABLE = range(6)
+COLLISION_KIND_NAMES = ("stopped_ego", "stopped_track", "active_rear", "active_front", "active_lateral",
+                        "vulnerable")
 
 
 # ============================================================================ Warp functions
@@ -236,51 +271,156 @@ def lane_query(m: ModelArrays, g: int, p: wp.vec2f, heading: float, radius: floa
 
 
 @wp.func
-def spans_two_lanes(m: ModelArrays, g: int, centre: wp.vec2f, heading: float, half_len: float,
-                    half_wid: float, radius: float) -> bool:
-    """The box's corners' nearest lanes (within radius) belong to different lane polylines."""
-    first = int(-1)
-    spans = bool(False)
-    for k in range(4):
-        corner = box_corner(centre, heading, half_len, half_wid, k)
-        sid, d, off, err = lane_query(m, g, corner, heading, radius)
-        if sid >= 0:
-            poly = m.seg_poly[sid]
-            if first < 0:
-                first = poly
-            elif poly != first:
-                spans = bool(True)
-    return spans
+def lane_distance(m: ModelArrays, g: int, p: wp.vec2f) -> float:
+    """True distance from p to the nearest lane centreline segment of scenario g's grid.
+
+    Ring search over the grid cells around p: each cell's lane list holds every lane segment
+    within ``lane_radius`` of the cell, so after the rings up to r (a square reaching at
+    least r cells from p) every segment passing within r x cell of p has been seen; the
+    search stops once the best distance is within that reach. Costs O(cells within the
+    distance); :data:`NO_LANE_DISTANCE` when the grid holds no lane."""
+    o = m.grid_origin[g]
+    cs = m.grid_cell[g]
+    dims = m.grid_dims[g]
+    first = m.grid_first[g]
+    cx = int(wp.floor(wp.clamp((p[0] - o[0]) / cs, -1.0e6, 1.0e6)))
+    cy = int(wp.floor(wp.clamp((p[1] - o[1]) / cs, -1.0e6, 1.0e6)))
+    # rings that can touch the grid: from the grid's Chebyshev distance to its farthest cell
+    gx = wp.max(wp.max(-cx, cx - (dims[0] - 1)), 0)
+    gy = wp.max(wp.max(-cy, cy - (dims[1] - 1)), 0)
+    r_lo = wp.max(gx, gy)
+    r_hi = wp.max(wp.max(wp.abs(cx), wp.abs(cx - (dims[0] - 1))), wp.max(wp.abs(cy), wp.abs(cy - (dims[1] - 1))))
+    best_d2 = float(1.0e30)
+    found = bool(False)
+    for r in range(r_lo, r_hi + 1):
+        if found:
+            reach = float(r - 1) * cs
+            if r > 0 and best_d2 <= reach * reach:
+                break
+        # the ring's cells: rows cy - r and cy + r in full, then columns cx - r and cx + r
+        for side in range(4):
+            fixed = cy - r
+            if side == 1:
+                fixed = cy + r
+            elif side == 2:
+                fixed = cx - r
+            elif side == 3:
+                fixed = cx + r
+            if r == 0 and side > 0:
+                continue
+            lo = cx - r
+            hi = cx + r
+            n_fixed = dims[1]
+            n_free = dims[0]
+            if side >= 2:
+                lo = cy - r + 1
+                hi = cy + r - 1
+                n_fixed = dims[0]
+                n_free = dims[1]
+            if fixed < 0 or fixed >= n_fixed:
+                continue
+            lo = wp.max(lo, 0)
+            hi = wp.min(hi, n_free - 1)
+            for k in range(lo, hi + 1):
+                ix = k
+                iy = fixed
+                if side >= 2:
+                    ix = fixed
+                    iy = k
+                cell = first + iy * dims[0] + ix
+                for q in range(m.lane_start[cell], m.lane_start[cell + 1]):
+                    sid = m.lane_items[q]
+                    ap = p - m.seg_a[sid]
+                    u = m.seg_dir[sid]
+                    t = wp.clamp(wp.dot(ap, u), 0.0, m.seg_len[sid])
+                    dv = ap - t * u
+                    d2 = wp.dot(dv, dv)
+                    if d2 < best_d2:
+                        best_d2 = d2
+                        found = bool(True)
+    result = WP_NO_LANE_DISTANCE
+    if found:
+        result = wp.sqrt(best_d2)
+    return result
 
 
 @wp.func
-def collision_kind(pa: wp.vec2f, ha: float, va: float, la: float, wa: float,
-                   pb: wp.vec2f, hb: float, vb: float, lb: float, wb: float) -> int:
-    """nuPlan collision case of agent a hitting b (codes in the module docstring)."""
+def _lanes_near(m: ModelArrays, g: int, p: wp.vec2f, reach: float, first_in: int, two_in: bool):
+    """Lane polylines with a segment within ``reach`` of p (reach <= lane_radius), folded into
+    (first polyline seen, a second distinct one seen)."""
+    first = first_in
+    two = two_in
+    cell = grid_cell(m, g, p, False)
+    if cell >= 0:
+        r2 = reach * reach
+        for k in range(m.lane_start[cell], m.lane_start[cell + 1]):
+            sid = m.lane_items[k]
+            ap = p - m.seg_a[sid]
+            u = m.seg_dir[sid]
+            t = wp.clamp(wp.dot(ap, u), 0.0, m.seg_len[sid])
+            dv = ap - t * u
+            if wp.dot(dv, dv) <= r2:
+                poly = m.seg_poly[sid]
+                if first < 0:
+                    first = poly
+                elif poly != first:
+                    two = bool(True)
+    return first, two
+
+
+@wp.func
+def straddles_divider(m: ModelArrays, g: int, oldest: wp.vec2f, p1: wp.vec2f, p2: wp.vec2f,
+                      newest: wp.vec2f, heading: float, width: float, lane_radius: float) -> bool:
+    """The agent straddled a lane divider over its last 4 positions (module docstring):
+    >= 2 distinct lane centrelines within width/2 + 1.75 m (capped at ``lane_radius``) of
+    its centre, and a lateral drift (oldest -> newest, across ``heading``) above 0.3 m."""
+    d = newest - oldest
+    drift = wp.abs(-wp.sin(heading) * d[0] + wp.cos(heading) * d[1])
+    result = bool(False)
+    if drift > WP_DIVIDER_DRIFT:
+        reach = wp.min(0.5 * width + WP_DIVIDER_REACH, lane_radius)
+        first = int(-1)
+        two = bool(False)
+        first, two = _lanes_near(m, g, oldest, reach, first, two)
+        first, two = _lanes_near(m, g, p1, reach, first, two)
+        first, two = _lanes_near(m, g, p2, reach, first, two)
+        first, two = _lanes_near(m, g, newest, reach, first, two)
+        result = two
+    return result
+
+
+@wp.func
+def collision_kind(pa: wp.vec2f, ha: float, va: wp.vec2f, pb: wp.vec2f, vb: wp.vec2f,
+                   other_vulnerable: bool) -> int:
+    """BehaviorBench collision case of agent a hitting b from their pre-contact states
+    (centres, a's heading, velocities; codes in the module docstring)."""
     kind = int(4)
-    if wp.abs(va) <= WP_STOPPED_SPEED:
+    fwd = wp.vec2f(wp.cos(ha), wp.sin(ha))
+    rel = pb - pa
+    n = wp.length(rel)
+    u = fwd
+    if n > 1.0e-9:
+        u = rel / n
+    cos_b = wp.dot(u, fwd)
+    closing = wp.dot(va - vb, u)
+    if other_vulnerable:
+        kind = 5
+    elif wp.length(va) <= WP_STOPPED_SPEED:
         kind = 0
-    elif wp.abs(vb) <= WP_STOPPED_SPEED:
+    elif wp.length(vb) <= WP_STOPPED_SPEED:
         kind = 1
-    else:
-        rel = pb - pa
-        n = wp.length(rel)
-        cos_b = float(1.0)
-        if n > 1.0e-9:
-            cos_b = (rel[0] * wp.cos(ha) + rel[1] * wp.sin(ha)) / n
-        if cos_b < WP_COS_BEHIND:
-            kind = 2
-        else:
-            fl = box_corner(pa, ha, 0.5 * la, 0.5 * wa, 0)
-            fr = box_corner(pa, ha, 0.5 * la, 0.5 * wa, 1)
-            if segment_hits_box(fl, fr, pb, hb, 0.5 * lb, 0.5 * wb):
-                kind = 3
+    elif cos_b < WP_COS_BEHIND:
+        kind = 2
+    elif cos_b > WP_COS_FRONT and closing > WP_FRONT_CLOSING:
+        kind = 3
     return kind
 
 
 @wp.func
-def kind_at_fault(kind: int, spans: bool) -> bool:
-    return kind == 1 or kind == 3 or (kind == 4 and spans)
+def kind_at_fault(kind: int, straddled: bool) -> bool:
+    """Fault of a collision case: stopped other, front and vulnerable always; rear and
+    lateral only while straddling a lane divider; a stopped agent never."""
+    return kind == 1 or kind == 3 or kind == 5 or ((kind == 2 or kind == 4) and straddled)
 
 
 # ============================================================================ NumPy references
@@ -333,47 +473,83 @@ def segments_intersect_np(p1, p2, q1, q2) -> bool:
                 or (d3 == 0 and on(p1, p2, q1)) or (d4 == 0 and on(p1, p2, q2)))
 
 
-def classify_collision(ego_xy, ego_heading, ego_speed, ego_size, other_xy, other_heading,
-                       other_speed, other_size) -> int:
-    """Reference of :func:`collision_kind` for one pair (codes in the module docstring)."""
-    if abs(ego_speed) <= STOPPED_SPEED:
+def classify_collision(ego_xy, ego_heading, ego_vel, other_xy, other_vel, other_vulnerable=False) -> int:
+    """Reference of :func:`collision_kind` for one pair, from the pre-contact state:
+    centres (2,), the ego's heading (rad) and both velocities (2,) m/s."""
+    ego_xy, other_xy = np.asarray(ego_xy, np.float64), np.asarray(other_xy, np.float64)
+    va, vb = np.asarray(ego_vel, np.float64), np.asarray(other_vel, np.float64)
+    fwd = np.array([math.cos(ego_heading), math.sin(ego_heading)])
+    rel = other_xy - ego_xy
+    n = float(np.linalg.norm(rel))
+    u = rel / n if n > 1e-9 else fwd
+    bearing = math.degrees(math.acos(float(np.clip(u @ fwd, -1.0, 1.0))))
+    closing = float((va - vb) @ u)
+    if other_vulnerable:
+        return VULNERABLE
+    if np.linalg.norm(va) <= STOPPED_SPEED:
         return STOPPED_EGO
-    if abs(other_speed) <= STOPPED_SPEED:
+    if np.linalg.norm(vb) <= STOPPED_SPEED:
         return STOPPED_TRACK
-    rel = np.asarray(other_xy, np.float64) - np.asarray(ego_xy, np.float64)
-    n = np.linalg.norm(rel)
-    cos_b = 1.0 if n <= 1e-9 else (rel[0] * np.cos(ego_heading) + rel[1] * np.sin(ego_heading)) / n
-    if cos_b < math.cos(math.radians(BEHIND_DEG)):
+    if bearing > BEHIND_DEG:
         return ACTIVE_REAR
-    corners = box_corners_np(ego_xy, ego_heading, ego_size)
-    other = box_corners_np(other_xy, other_heading, other_size)
-    # front edge touches the other box: it crosses one of the box's edges or lies inside it
-    fl, fr = corners[0], corners[1]
-    for k in range(4):
-        if segments_intersect_np(fl, fr, other[k], other[(k + 1) % 4]):
-            return ACTIVE_FRONT
-    local = _to_local_np(fl, other_xy, other_heading)
-    if abs(local[0]) <= other_size[0] / 2 and abs(local[1]) <= other_size[1] / 2:
+    if bearing < FRONT_DEG and closing > FRONT_CLOSING_SPEED:
         return ACTIVE_FRONT
     return ACTIVE_LATERAL
 
 
-def classify_fault(kind: int, spans_two_lanes: bool) -> bool:
-    """nuPlan fault rule: stopped other agent and front collisions are at fault; lateral
-    collisions only while the agent spans two lanes; a stopped agent and being rear-ended
-    are not."""
-    return kind in (STOPPED_TRACK, ACTIVE_FRONT) or (kind == ACTIVE_LATERAL and bool(spans_two_lanes))
+def straddles_divider_np(positions, heading: float, width: float, segments, poly_ids,
+                         lane_radius: float = 4.0) -> bool:
+    """Reference of :func:`straddles_divider`.
+
+    Args:
+        positions: (4, 2) the agent's last positions, oldest first (the last one is the
+            pre-contact position).
+        heading: the pre-contact heading, rad. width: the collision box's width, m.
+        segments: (S, 4) lane-centreline segments (x0, y0, x1, y1); poly_ids: (S,) their
+            polyline ids (distinct centrelines).
+    """
+    pos = np.asarray(positions, np.float64).reshape(-1, 2)
+    d = pos[-1] - pos[0]
+    drift = abs(-math.sin(heading) * d[0] + math.cos(heading) * d[1])
+    if drift <= DIVIDER_DRIFT:
+        return False
+    seg = np.asarray(segments, np.float64).reshape(-1, 4)
+    if seg.shape[0] == 0:
+        return False
+    a, b = seg[:, :2], seg[:, 2:]
+    ab = b - a
+    t = np.clip((((pos[:, None] - a) * ab).sum(-1)) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+    dist = np.linalg.norm(pos[:, None] - (a + t[..., None] * ab), axis=-1)  # (4, S)
+    reach = min(0.5 * width + DIVIDER_REACH, lane_radius)
+    near = np.asarray(poly_ids)[(dist <= reach).any(0)]
+    return len(set(near.tolist())) >= 2
 
 
-def _to_local_np(p, centre, heading) -> np.ndarray:
-    d = np.asarray(p, np.float64) - np.asarray(centre, np.float64)
-    c, s = math.cos(heading), math.sin(heading)
-    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+def classify_fault(kind: int, straddled: bool) -> bool:
+    """Reference of :func:`kind_at_fault`: a stopped other agent, front collisions and
+    vulnerable road users are at fault; rear and lateral collisions only while the agent
+    straddled a lane divider; a stopped agent never."""
+    return kind in (STOPPED_TRACK, ACTIVE_FRONT, VULNERABLE) or (
+        kind in (ACTIVE_REAR, ACTIVE_LATERAL) and bool(straddled))
+
+
+def lane_distance_np(xy, segments) -> np.ndarray:
+    """Reference of :func:`lane_distance`: (...,) true distance from (..., 2) points to the
+    nearest of (S, 4) lane segments (:data:`NO_LANE_DISTANCE` when there is none)."""
+    p = np.asarray(xy, np.float64)[..., None, :]
+    seg = np.asarray(segments, np.float64).reshape(-1, 4)
+    if seg.shape[0] == 0:
+        return np.full(p.shape[:-2], NO_LANE_DISTANCE)
+    a, b = seg[:, :2], seg[:, 2:]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1).min(-1)
 
 
 __all__ = [
     "wrap_angle", "boxes_overlap", "segments_intersect", "segment_hits_box", "point_segment",
-    "grid_cell", "lane_query", "spans_two_lanes", "collision_kind", "kind_at_fault", "box_corner",
-    "boxes_overlap_np", "segments_intersect_np", "classify_collision", "classify_fault",
-    "box_corners_np", "wrap_angle_np", "COLLISION_KIND_NAMES",
+    "grid_cell", "lane_query", "lane_distance", "straddles_divider", "collision_kind", "kind_at_fault",
+    "box_corner", "boxes_overlap_np", "segments_intersect_np", "classify_collision",
+    "straddles_divider_np", "classify_fault", "lane_distance_np", "box_corners_np", "wrap_angle_np",
+    "COLLISION_KIND_NAMES", "NO_LANE_DISTANCE",
 ]

@@ -97,7 +97,31 @@ def events_kernel(state: State, model: ModelArrays, params: Params, track_all: i
                   trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                   present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                   roster_n: wp.array2d(dtype=wp.int32)):
-    """Collisions, off-road, goal, lanes, outcome, metrics, reward, removal, timeout (over (W, A)).
+    """:func:`agent_events` over (W, A), one thread per agent (CUDA)."""
+    w, a = wp.tid()
+    agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, w, a)
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def events_world_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
+                        trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
+                        present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
+                        roster_n: wp.array2d(dtype=wp.int32)):
+    """:func:`agent_events` over W, one thread per world looping over its slots (CPU: a CPU
+    thread copies the kernel's State / ModelArrays arguments on entry, about 60 ns, so one
+    entry per world instead of per slot; same order, same results as :func:`events_kernel`)."""
+    w = wp.tid()
+    for a in range(state.present.shape[1]):
+        agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, w, a)
+
+
+@wp.func(inline=True)
+def agent_events(state: State, model: ModelArrays, params: Params, track_all: int,
+                 trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
+                 present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
+                 roster_n: wp.array2d(dtype=wp.int32), w: int, a: int):
+    """Collisions, off-road, goal, lanes, outcome, metrics, reward, removal, timeout of agent
+    (w, a) (the body of ``events_kernel`` / ``events_world_kernel``).
 
     ``trig`` / ``prev_trig`` (heading (cos, sin) now and before the motion) and the roster
     (``present_idx``, ``tracked_idx``, ``roster_n``) come from
@@ -110,7 +134,6 @@ def events_kernel(state: State, model: ModelArrays, params: Params, track_all: i
     goal and timeout: no lane query, no metrics accumulators (they stay 0), reward 0. Nothing
     reads those for scenery, and scenery outnumbers the tracked agents about 5 to 1 on WOMD.
     """
-    w, a = wp.tid()
     if state.step_count[w] >= params.episode_steps or not state.present[w, a]:
         if state.agent_index[w, a] >= 0:  # empty slots keep the zeros written at reset
             state.reward[w, a] = 0.0
@@ -287,4 +310,5 @@ def finish_kernel(state: State, params: Params, worlds: wp.array(dtype=wp.int32)
     state.world_done[w] = t >= params.episode_steps or not any_policy
 
 
-__all__ = ["events_kernel", "finish_kernel", "offroad_test", "offroad_test_cs"]
+__all__ = ["events_kernel", "events_world_kernel", "agent_events", "finish_kernel", "offroad_test",
+           "offroad_test_cs"]

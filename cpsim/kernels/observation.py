@@ -3,6 +3,11 @@
 Layout and normalisation are documented in :mod:`cpsim.observation`. Cost per agent is
 O(A + K) for partners (one pass with an insertion sort into a K-slot scratch list) and
 O(M) for the road (the grid cell's precomputed candidate list).
+
+Also here: ``prepare_kernel``, the per-world pass of a step between the motion and the
+events (heading (cos, sin) of every present agent, and the roster of present and tracked
+slots the events kernel iterates), and :func:`tracked_role`, which agents get every event
+and metric (see :mod:`cpsim.kernels.metrics`).
 """
 
 from __future__ import annotations
@@ -10,7 +15,7 @@ from __future__ import annotations
 import warp as wp
 
 from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
-from cpsim.kernels.common import KERNEL_MODULE, KERNEL_OPTIONS, POLICY, VEHICLE, Params
+from cpsim.kernels.common import IDM, KERNEL_MODULE, KERNEL_OPTIONS, POLICY, VEHICLE, Params
 from cpsim.kernels.geometry import grid_cell, to_local
 from cpsim.model import ModelArrays
 from cpsim.state import State
@@ -19,6 +24,41 @@ _COND_LOW = wp.constant(wp.types.vector(10, wp.float32)(*TRAIN_LOW.tolist()))
 _COND_SPAN = wp.constant(wp.types.vector(10, wp.float32)(*(TRAIN_HIGH - TRAIN_LOW).tolist()))
 ROAD_LANE = wp.constant(0)
 ROAD_EDGE = wp.constant(2)
+
+
+@wp.func
+def tracked_role(ctrl: int, task: bool, a: int, observe_all: int, track_all: int) -> bool:
+    """Whether the agent in slot ``a`` is *tracked*: it gets every event and metric of a step
+    (collisions with everyone, lane, metrics accumulators, reward). Tracked are POLICY and IDM
+    agents, task agents (controllable at reset, whatever their controller now), slot 0 (the
+    ego) and, with ``observe_all`` or ``track_all``, everyone. The others are *scenery*
+    (REPLAY / STATIC agents without a task): see ``events_kernel``."""
+    return ctrl == POLICY or ctrl == IDM or task or a == 0 or observe_all != 0 or track_all != 0
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2d(dtype=wp.vec2f),
+                   prev_trig: wp.array2d(dtype=wp.vec2f), present_idx: wp.array2d(dtype=wp.int32),
+                   tracked_idx: wp.array2d(dtype=wp.int32), roster_n: wp.array2d(dtype=wp.int32)):
+    """Per world (over W), after the motion: for every present agent, ``prev_trig`` <- ``trig``
+    (the (cos, sin) of its heading before the motion) and ``trig`` <- (cos, sin) of its heading
+    now; ``present_idx[w, :n]`` lists the present slots and ``tracked_idx[w, :m]`` the present
+    tracked ones (:func:`tracked_role`), both in slot order; ``roster_n[w]`` = (n, m)."""
+    w = wp.tid()
+    n = int(0)
+    m = int(0)
+    for a in range(state.present.shape[1]):
+        if state.present[w, a]:
+            prev_trig[w, a] = trig[w, a]
+            h = state.heading[w, a]
+            trig[w, a] = wp.vec2f(wp.cos(h), wp.sin(h))
+            present_idx[w, n] = a
+            n += 1
+            if tracked_role(state.controller[w, a], state.task_agent[w, a], a, params.observe_all, track_all):
+                tracked_idx[w, m] = a
+                m += 1
+    roster_n[w, 0] = n
+    roster_n[w, 1] = m
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
@@ -36,17 +76,41 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
                        sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32),
                        obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32),
                        trig: wp.array2d(dtype=wp.vec2f), force: int):
-    """Write obs[w, a, :] for the worlds listed in ``worlds`` (launch over (len(worlds), A)).
+    """:func:`observe_agent` for the worlds listed in ``worlds``, over (len(worlds), A): one
+    thread per agent (CUDA)."""
+    i, a = wp.tid()
+    observe_agent(state, model, params, worlds[i], a, obs, sel_idx, sel_d2, obs_clear, filled, trig, force)
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def observation_world_kernel(state: State, model: ModelArrays, params: Params,
+                             worlds: wp.array(dtype=wp.int32), obs: wp.array3d(dtype=wp.float32),
+                             sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32),
+                             obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32),
+                             trig: wp.array2d(dtype=wp.vec2f), force: int):
+    """:func:`observe_agent` for the worlds listed in ``worlds``, over len(worlds): one thread
+    per world looping over its slots (CPU: fewer copies of the State / ModelArrays arguments,
+    which a CPU thread makes on entry; same order and results as ``observation_kernel``)."""
+    i = wp.tid()
+    w = worlds[i]
+    for a in range(obs.shape[1]):
+        observe_agent(state, model, params, w, a, obs, sel_idx, sel_d2, obs_clear, filled, trig, force)
+
+
+@wp.func(inline=True)
+def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: int,
+                  obs: wp.array3d(dtype=wp.float32), sel_idx: wp.array3d(dtype=wp.int32),
+                  sel_d2: wp.array3d(dtype=wp.float32), obs_clear: wp.array2d(dtype=wp.bool),
+                  filled: wp.array3d(dtype=wp.int32), trig: wp.array2d(dtype=wp.vec2f), force: int):
+    """Write obs[w, a, :].
 
     Observed are alive agents driven by the policy or holding a task (``task_agent``), or
     every alive agent with ``observe_all``; the others observe zeros; ``obs_clear`` remembers rows already zeroed so empty and
     removed slots cost nothing on later steps, and ``filled[w, a]`` = (partners, road
     segments, grid cell) written last time, so only entries that were filled before are
     zeroed again and constant road features are kept while the agent stays in its cell.
-    ``force`` rewrites whole rows (after a reset, restore or an external state edit).
+    ``force`` rewrites whole rows (after a restore or an external state edit).
     """
-    i, a = wp.tid()
-    w = worlds[i]
     D = params.obs_dim
     observed = state.alive[w, a] and (params.observe_all != 0 or state.controller[w, a] == POLICY
                                       or state.task_agent[w, a])
@@ -209,4 +273,5 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
     filled[w, a, 1] = mcount
 
 
-__all__ = ["observation_kernel", "heading_trig_kernel"]
+__all__ = ["observation_kernel", "observation_world_kernel", "observe_agent", "heading_trig_kernel",
+           "prepare_kernel", "tracked_role"]

@@ -11,6 +11,7 @@ goal        1 on the step the goal is first reached          + raw
 collision   1 while in collision this step                   - (c.collision + 0.1 |v|) raw
 offroad     1 when off-road this step                        - c.offroad raw
 comfort     1{|a_long|>3} + 1{|a_lat|>3} + 1{|jerk|>5}       - c.comfort raw
+            (jerk: longitudinal or lateral)
 lane_align  cos(e) - 1 with a lane near, else -1           + c.lane_align raw
 lane_center -min(|o - target|, lane_radius) with a lane      + c.lane_center raw
             near, else -lane_radius; target = -center_bias
@@ -45,15 +46,24 @@ VEL_ALIGN_SCALE = 20.0
 
 
 @wp.func
-def comfort_violations(a_long: float, a_lat: float, jerk: float) -> int:
+def comfort_violations(a_long: float, a_lat: float, jerk: float, lat_jerk: float) -> int:
+    """Comfort violations of a step (0..3): 1{|a_long| > 3} + 1{|a_lat| > 3} + 1{|jerk| > 5},
+    where the jerk test counts the longitudinal or the lateral jerk (BehaviorBench)."""
     n = int(0)
     if wp.abs(a_long) > 3.0:
         n += 1
     if wp.abs(a_lat) > 3.0:
         n += 1
-    if wp.abs(jerk) > 5.0:
+    if wp.abs(jerk) > 5.0 or wp.abs(lat_jerk) > 5.0:
         n += 1
     return n
+
+
+def comfort_violations_np(a_long, a_lat, jerk, lat_jerk) -> np.ndarray:
+    """Reference of :func:`comfort_violations` over arrays (int32)."""
+    a_long, a_lat, jerk, lat_jerk = (np.asarray(x, np.float64) for x in (a_long, a_lat, jerk, lat_jerk))
+    return ((np.abs(a_long) > COMFORT_A_LONG).astype(np.int32) + (np.abs(a_lat) > COMFORT_A_LAT)
+            + ((np.abs(jerk) > COMFORT_JERK) | (np.abs(lat_jerk) > COMFORT_JERK))).astype(np.int32)
 
 
 @wp.func
@@ -147,4 +157,4 @@ def reward_terms_np(condition: np.ndarray, *, goal_now: bool, collided: bool, of
 
 
 assert NUM_REWARD_TERMS == 9
-__all__ = ["write_reward", "comfort_violations", "reward_terms_np", "REWARD_TERMS"]
+__all__ = ["write_reward", "comfort_violations", "comfort_violations_np", "reward_terms_np", "REWARD_TERMS"]

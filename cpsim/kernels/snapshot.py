@@ -6,7 +6,10 @@ launch over (n, A): a snapshot gathers worlds into a compact snapshot state, a r
 scatters them back (one-to-many by repeating a source index). Cost scales with the worlds
 touched. ``tests/cpsim/test_sim_snapshot.py`` checks that every State field is copied.
 
-``reset_kernel`` initialises the listed worlds from their scenario's log at t0.
+``reset_kernel`` initialises the listed worlds from their scenario's log at t0. It reads the
+slot, controller and task tables of the scenario (uploaded once per Simulator) and the
+staged world / scenario / condition buffers, so a reset is one recorded launch with no
+per-reset allocation (plus the observation of the reset worlds).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import warp as wp
 from cpsim.kernels.common import KERNEL_MODULE, KERNEL_OPTIONS, NO_CONTROLLER, POLICY, RUNNING, STATIC, Params
 from cpsim.kernels.dynamics import signed_speed
 from cpsim.kernels.geometry import lane_query
+from cpsim.kernels.observation import tracked_role
 from cpsim.model import ModelArrays
 from cpsim.state import State
 
@@ -45,9 +49,13 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
     dst.accel[d, a] = src.accel[s, a]
     dst.lat_accel[d, a] = src.lat_accel[s, a]
     dst.jerk[d, a] = src.jerk[s, a]
+    dst.lat_jerk[d, a] = src.lat_jerk[s, a]
     dst.steer[d, a] = src.steer[s, a]
     dst.prev_pos[d, a] = src.prev_pos[s, a]
     dst.prev_heading[d, a] = src.prev_heading[s, a]
+    dst.prev_vel[d, a] = src.prev_vel[s, a]
+    for f in range(src.pos_hist.shape[2]):
+        dst.pos_hist[d, a, f] = src.pos_hist[s, a, f]
     dst.size[d, a] = src.size[s, a]
     dst.agent_type[d, a] = src.agent_type[s, a]
     dst.goal[d, a] = src.goal[s, a]
@@ -81,34 +89,36 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.array(dtype=wp.int32),
-                 scenario: wp.array(dtype=wp.int32), agent_local: wp.array2d(dtype=wp.int32),
-                 controllers: wp.array2d(dtype=wp.int32), task_agent: wp.array2d(dtype=wp.bool),
-                 conditions: wp.array3d(dtype=wp.float32)):
-    """Initialise world worlds[i] with scenario scenario[i]; slot a holds scenario agent
-    agent_local[i, a] (-1 empty) driven by controllers[i, a]; task_agent[i, a] marks the
-    controllable agents (over (n, A))."""
+                 scenario: wp.array(dtype=wp.int32), slot_table: wp.array2d(dtype=wp.int32),
+                 ctrl_table: wp.array2d(dtype=wp.int32), task_table: wp.array2d(dtype=wp.bool),
+                 conditions: wp.array3d(dtype=wp.float32), trig: wp.array2d(dtype=wp.vec2f), track_all: int):
+    """Initialise world worlds[i] with pool scenario g = scenario[i]; slot a holds scenario
+    agent slot_table[g, a] (-1 empty) driven by ctrl_table[g, a]; task_table[g, a] marks the
+    controllable agents; conditions[i, a] are its raw conditions; trig[w, a] gets the (cos, sin)
+    of the heading (over (n, A)). The lane fields are computed for tracked agents only."""
     i, a = wp.tid()
     w = worlds[i]
     g = scenario[i]
-    num = agent_local.shape[1]
+    num = slot_table.shape[1]
     if a == 0:
         state.scenario[w] = g
         state.step_count[w] = 0
         any_policy = bool(False)
         for b in range(num):
-            if agent_local[i, b] >= 0 and controllers[i, b] == POLICY:
+            if slot_table[g, b] >= 0 and ctrl_table[g, b] == POLICY:
                 any_policy = bool(True)
         state.world_done[w] = not any_policy
-    local = agent_local[i, a]
+    local = slot_table[g, a]
     row = int(-1)
     ctrl = NO_CONTROLLER
     if local >= 0:
         row = model.agent_first[g] + local
-        ctrl = controllers[i, a]
+        ctrl = ctrl_table[g, a]
+    task = task_table[g, a] and local >= 0
     state.agent_index[w, a] = local
     state.agent_row[w, a] = row
     state.controller[w, a] = ctrl
-    state.task_agent[w, a] = task_agent[i, a] and local >= 0
+    state.task_agent[w, a] = task
     for f in range(conditions.shape[2]):
         state.conditions[w, a, f] = conditions[i, a, f]
     occupied = row >= 0
@@ -132,14 +142,19 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
             vel = wp.vec2f(0.0, 0.0)
     state.pos[w, a] = pos
     state.heading[w, a] = heading
+    trig[w, a] = wp.vec2f(wp.cos(heading), wp.sin(heading))
     state.vel[w, a] = vel
     state.speed[w, a] = signed_speed(vel, heading)
     state.accel[w, a] = 0.0
     state.lat_accel[w, a] = 0.0
     state.jerk[w, a] = 0.0
+    state.lat_jerk[w, a] = 0.0
     state.steer[w, a] = 0.0
     state.prev_pos[w, a] = pos
     state.prev_heading[w, a] = heading
+    state.prev_vel[w, a] = vel
+    for f in range(state.pos_hist.shape[2]):
+        state.pos_hist[w, a, f] = pos
     state.size[w, a] = size
     state.agent_type[w, a] = atype
     state.goal[w, a] = goal
@@ -157,7 +172,7 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
     has_lane = bool(False)
     err = float(0.0)
     offset = float(0.0)
-    if occupied:
+    if occupied and tracked_role(ctrl, task, a, params.observe_all, track_all):
         sid, ld, off, e = lane_query(model, g, pos, heading, params.lane_radius)
         if sid >= 0:
             has_lane = bool(True)

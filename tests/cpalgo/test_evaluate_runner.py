@@ -101,9 +101,13 @@ def test_accumulators_match_recorded_trajectory(expert, tasks):
 
 
 def test_at_fault_flags_match_reference_rules(expert):
-    """Every ego collision: the simulator's at_fault equals the nuPlan rule applied by
-    :mod:`cpalgo.evaluate.metrics` to the recorded poses at the collision step."""
+    """Every ego collision: the simulator's at_fault equals BehaviorBench's rules (the NumPy
+    reference of the kernel, ``cpsim.kernels.geometry``) applied to the recorded state one
+    step before contact and the ego's last four positions."""
+    from cpsim.kernels import geometry as G
+
     ev, _ = expert
+    scale = ev.sim.config.box_scale
     kinds = []
     for action in (10, 7):  # accelerate straight (+4 / 0 long jerk... index long*3 + lat)
         res = ev.run(lambda obs, a=action: np.full(obs.shape[0], a), label=f"a{action}")
@@ -114,11 +118,14 @@ def test_at_fault_flags_match_reference_rules(expert):
                 continue
             j = int(c["collision_partner"][row])
             sc = _scenario_of(ev, c["scenario_id"][row])
-            kind = M.collision_type(tr["xy"][0, k], tr["heading"][0, k], tr["speed"][0, k], tr["sizes"][0],
-                                    tr["xy"][j, k], tr["heading"][j, k], tr["speed"][j, k], tr["sizes"][j])
+            assert (sc.agent_types == 0).all()  # procedural scenes: vehicles only
+            kind = G.classify_collision(tr["xy"][0, k - 1], tr["heading"][0, k - 1], tr["velocity"][0, k - 1],
+                                        tr["xy"][j, k - 1], tr["velocity"][j, k - 1])
             segs, ids = M.lane_segments(sc.road_points, sc.road_offsets, sc.road_types)
-            spans = M.ego_spans_two_lanes(tr["xy"][0, k], tr["heading"][0, k], tr["sizes"][0], segs, ids)
-            assert bool(M.at_fault(kind, spans)) == bool(c["at_fault_collision"][row]), (row, int(kind))
+            past = tr["xy"][0, np.maximum(np.arange(k - 4, k), 0)]
+            straddled = G.straddles_divider_np(past, tr["heading"][0, k - 1], tr["sizes"][0][1] * scale,
+                                               segs, ids, ev.sim.config.lane_radius)
+            assert G.classify_fault(kind, straddled) == bool(c["at_fault_collision"][row]), (row, kind)
             kinds.append(int(kind))
     assert len(kinds) >= 3
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -125,10 +127,11 @@ def test_classic_hand_computed_pufferdrive():
     assert sim.num_actions == 91
     _act(sim, 4 * 13 + 8)  # accel 1.333, steer 1/3 rad
     a, delta = float(CLASSIC_ACCEL[4]), float(CLASSIC_STEER[8])
-    assert a == pytest.approx(1.333) and delta == pytest.approx(1 / 3, abs=1e-6)
+    # PufferDrive's steering table is rounded to three decimals, not exactly 1/3
+    assert a == pytest.approx(1.333) and delta == pytest.approx(0.333, abs=1e-7)
     v_new = 10.0 + a * 0.1
     beta = math.tanh(0.5 * math.tan(delta))
-    yaw = 10.0 * math.cos(beta) * math.tan(delta) / 4.5  # speed before the update
+    yaw = v_new * math.cos(beta) * math.tan(delta) / 4.5  # the updated, signed speed
     assert sim.xy[0, 0, 0].item() == pytest.approx(v_new * math.cos(beta) * 0.1, abs=1e-5)
     assert sim.xy[0, 0, 1].item() == pytest.approx(v_new * math.sin(beta) * 0.1, abs=1e-5)
     assert sim.heading[0, 0].item() == pytest.approx(yaw * 0.1, abs=1e-6)
@@ -139,6 +142,77 @@ def test_classic_hand_computed_pufferdrive():
     ref = classic_step_np(v_new * math.cos(beta) * 0.1, v_new * math.sin(beta) * 0.1, yaw * 0.1,
                           v_new * math.cos(beta), v_new * math.sin(beta), 4.5, 0.0, 0.0)
     np.testing.assert_allclose(sim.xy[0, 0].numpy(), [ref["x"], ref["y"]], atol=1e-5)
+
+
+PUFFERDRIVE_CSV = Path(__file__).resolve().parents[2].parent / "shared/data/pufferdrive/classic_kinematics.csv"
+
+
+def _pufferdrive_sequences() -> dict[str, list[dict[str, str]]]:
+    with PUFFERDRIVE_CSV.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    seqs: dict[str, list[dict[str, str]]] = {}
+    for r in rows:
+        seqs.setdefault(r["sequence"], []).append(r)
+    return seqs
+
+
+@pytest.mark.skipif(not PUFFERDRIVE_CSV.is_file(), reason="PufferDrive reference trajectories absent")
+@pytest.mark.parametrize("box_scale", [1.0, 0.7])
+def test_classic_reproduces_pufferdrive_trajectories(box_scale):
+    """PufferDrive's own classic step (float32, 4 x 90 decisions) within float32 rounding.
+
+    With ``box_scale`` 0.7 the logged length is the CSV's / 0.7: the yaw rate divides by
+    box_scale x length, as PufferDrive does for the agents it controls on WOMD."""
+    seqs = _pufferdrive_sequences()
+    assert len(seqs) == 4
+    scenarios, ref = [], []
+    for name, rows in seqs.items():
+        r0 = rows[0]
+        length = float(r0["length"]) / box_scale
+        assert all(float(r["length"]) == float(r0["length"]) for r in rows)
+        x, y, h, v = (float(r0[k]) for k in ("x", "y", "heading", "speed"))
+        scenarios.append(make_scenario([agent(x, y, heading=h, speed=v, length=length, goal=(x + 5000.0, y))],
+                                       sid=name))
+        ref.append(rows)
+    cfg = {"dynamics": "classic", "box_scale": box_scale, "on_goal": "ignore", "on_collision": "ignore",
+           "on_offroad": "ignore"}
+    sim = cpsim.Simulator(scenarios, num_worlds=4, max_agents=1, config=cfg, seed=0)
+    sim.reset(scenario_index=np.arange(4), conditions=NORMAL)
+    np.testing.assert_allclose(sim.velocity[:, 0].numpy(),
+                               [[float(r[0]["vx"]), float(r[0]["vy"])] for r in ref], atol=1e-5)
+    n = len(ref[0]) - 1
+    assert n == 90 and all(len(r) == n + 1 for r in ref)
+    err_xy = np.zeros(4)
+    err_h = np.zeros(4)
+    for t in range(1, n + 1):
+        sim.step(np.array([[int(r[t]["action"])] for r in ref]))
+        assert bool(sim.alive[:, 0].all())
+        want_xy = np.array([[float(r[t]["x"]), float(r[t]["y"])] for r in ref])
+        want_h = np.array([float(r[t]["heading"]) for r in ref])  # never wrapped there
+        want_v = np.array([[float(r[t]["vx"]), float(r[t]["vy"])] for r in ref])
+        err_xy = np.maximum(err_xy, np.abs(sim.xy[:, 0].numpy() - want_xy).max(-1))
+        dh = sim.heading[:, 0].numpy().astype(np.float64) - want_h
+        err_h = np.maximum(err_h, np.abs((dh + np.pi) % (2 * np.pi) - np.pi))
+        np.testing.assert_allclose(sim.velocity[:, 0].numpy(), want_v, atol=1e-3)
+    # float32 rounding only (positions reach 1000 m, where one ulp is 6e-5 m)
+    assert err_xy.max() < 1e-3, dict(zip(seqs, err_xy))
+    assert err_h.max() < 1e-4, dict(zip(seqs, err_h))
+
+
+def test_classic_yaw_rate_follows_box_scale():
+    """One steering step: the yaw rate divides by box_scale x the logged length."""
+    headings = []
+    for box_scale in (1.0, 0.7):
+        sc = make_scenario([agent(0.0, 0.0, speed=10.0, length=5.0, goal=(200.0, 0.0))])
+        sim = cpsim.Simulator([sc], num_worlds=1, max_agents=2,
+                              config={"dynamics": "classic", "box_scale": box_scale}, seed=0)
+        sim.reset(conditions=NORMAL)
+        _act(sim, 3 * 13 + 9)  # accel 0, steer 0.5
+        headings.append(sim.heading[0, 0].item())
+    beta = math.tanh(0.5 * math.tan(0.5))
+    yaw = 10.0 * math.cos(beta) * math.tan(0.5) / 5.0
+    assert headings[0] == pytest.approx(yaw * 0.1, rel=1e-5)
+    assert headings[1] == pytest.approx(yaw * 0.1 / 0.7, rel=1e-5)
 
 
 def test_replay_follows_log_and_vanishes_when_log_ends():
@@ -191,9 +265,33 @@ def test_idm_follows_path_and_stops_behind_a_stopped_leader():
     assert abs(sim.xy[0, 0, 1].item()) < 1e-3 and abs(sim.speed[0, 0].item()) < 0.2
 
 
+def test_idm_parameters_are_behaviorbench_defaults():
+    cfg = cpsim.SimConfig()
+    assert (cfg.idm_v0, cfg.idm_min_gap, cfg.idm_headway, cfg.idm_accel, cfg.idm_brake) == (15.0, 1.0, 1.5, 1.0, 3.0)
+    # free road: a = a_max (1 - (v / v0)^4) with v0 = 15 m/s whatever the logged speed
+    sc = make_scenario([agent(0.0, 0.0, speed=10.0, goal=(200.0, 0.0))])  # logged speed 10 m/s
+    sim = cpsim.Simulator([sc], num_worlds=1, max_agents=1, seed=0, config={"on_goal": "ignore"})
+    sim.reset(conditions=NORMAL)
+    sim.set_controllers(np.array([Controller.IDM]))
+    sim.step(np.zeros((1, 1), np.int64))
+    assert sim.speed[0, 0].item() == pytest.approx(10.0 + 0.1 * (1.0 - (10.0 / 15.0) ** 4), abs=1e-5)
+    # behind a stopped leader: s* = s0 + v T + v dv / (2 sqrt(a b)), a -= a_max (s* / gap)^2
+    sc = make_scenario([agent(0.0, 0.0, speed=10.0, goal=(200.0, 0.0)), agent(35.0, 0.0, speed=0.0)])
+    sim = cpsim.Simulator([sc], num_worlds=1, max_agents=2, seed=0, config={"on_goal": "ignore"})
+    sim.reset(conditions=NORMAL)
+    sim.set_controllers(np.array([Controller.IDM, Controller.STATIC]))
+    sim.step(np.zeros((1, 2), np.int64))
+    gap = 35.0 - 4.5  # within the 40 m lookahead
+    s_star = 1.0 + 10.0 * 1.5 + 10.0 * 10.0 / (2.0 * math.sqrt(1.0 * 3.0))
+    acc = 1.0 * (1.0 - (10.0 / 15.0) ** 4 - (s_star / gap) ** 2)
+    assert sim.speed[0, 0].item() == pytest.approx(10.0 + 0.1 * acc, abs=1e-5)
+
+
 def test_idm_free_road_reaches_desired_speed_without_exceeding_it():
     sc = make_scenario([agent(0.0, 0.0, speed=4.0, accel=1.0, goal=(200.0, 0.0))])  # log max ~13 m/s
-    sim = cpsim.Simulator([sc], num_worlds=1, max_agents=1, seed=0, config={"on_goal": "ignore"})
+    # idm_v0 = 0: each agent's largest logged speed is its desired speed
+    sim = cpsim.Simulator([sc], num_worlds=1, max_agents=1, seed=0,
+                          config={"on_goal": "ignore", "idm_v0": 0.0, "idm_accel": 2.0})
     sim.reset(conditions=NORMAL)
     sim.set_controllers(np.array([Controller.IDM]))
     v0 = float(np.linalg.norm(sc.log_velocity[0], axis=-1).max())

@@ -11,7 +11,7 @@ import torch
 import cpsim
 from cpsim.conditions import FIELD_INDEX
 from cpsim.config import Controller, Outcome
-from cpsim.kernels.reward import reward_terms_np
+from cpsim.kernels.reward import comfort_violations_np, reward_terms_np
 from cpsim.state import REWARD_TERMS
 from tests.cpsim.scenes import LANE_WIDTH, agent, make_scenario
 
@@ -169,8 +169,8 @@ def test_reward_terms_match_reference():
         for w in range(3):
             for a in range(3):
                 kw = dict(goal_now=False, collided=False, offroad=bool(st["first_offroad_step"][w, a] == t + 1),
-                          violations=int(abs(st["accel"][w, a]) > 3) + int(abs(st["lat_accel"][w, a]) > 3)
-                          + int(abs(st["jerk"][w, a]) > 5),
+                          violations=int(comfort_violations_np(st["accel"][w, a], st["lat_accel"][w, a],
+                                                               st["jerk"][w, a], st["lat_jerk"][w, a])),
                           has_lane=bool(st["has_lane"][w, a]), err=float(st["lane_err"][w, a]),
                           offset=float(st["lane_offset"][w, a]), speed=float(st["speed"][w, a]))
                 raw, wtd, total = reward_terms_np(conds[w, a], **kw)
@@ -183,6 +183,32 @@ def test_reward_terms_match_reference():
     assert sim.reward_terms["raw_lane_center"][0, 2].item() == pytest.approx(-4.0)
     assert sim.reward_terms["raw_lane_align"][0, 2].item() == pytest.approx(-1.0)
     assert (sim.reward_terms["raw_reverse"][:, 1] >= 0).all()
+
+
+def test_comfort_counts_longitudinal_or_lateral_jerk():
+    """A steering step at 3 m/s: |a_lat| ~ 1 m/s^2 (< 3) but its lateral jerk ~ 10 m/s^3 (> 5)
+    is a comfort violation; longitudinal and lateral jerk together still count once."""
+    sc = make_scenario([agent(0.0, 0.0, speed=3.0, goal=(200.0, 0.0))])
+    sim = cpsim.Simulator([sc], num_worlds=2, max_agents=1, seed=0, config={"dynamics": "classic"})
+    sim.reset(conditions=cond(comfort=0.1))
+    steer, steer_accel = 3 * 13 + 9, 6 * 13 + 9  # steer 0.5 rad with accel 0 / +4 m/s^2
+    v = 3.0
+    beta = math.tanh(0.5 * math.tan(0.5))
+    a_lat = v * v * math.cos(beta) * math.tan(0.5) / 4.5
+    sim.step(np.array([[steer], [steer_accel]]))
+    st = sim.state_dict()
+    assert abs(st["jerk"][0, 0]) < 1e-4 and st["lat_accel"][0, 0] == pytest.approx(a_lat, rel=1e-4)
+    assert abs(st["lat_accel"][0, 0]) < 3.0 and st["lat_jerk"][0, 0] == pytest.approx(a_lat / 0.1, rel=1e-4)
+    # world 1: longitudinal jerk 40 and lateral jerk > 5 in the same step, a_long 4 > 3
+    assert abs(st["jerk"][1, 0]) > 5.0 and abs(st["lat_jerk"][1, 0]) > 5.0
+    assert sim.metrics["comfort_violations"][:, 0].tolist() == [1, 2]
+    assert sim.reward_terms["raw_comfort"][:, 0].tolist() == [1.0, 2.0]
+    assert sim.reward_terms["w_comfort"][0, 0].item() == pytest.approx(-0.1)
+    sim.step(np.array([[steer], [steer]]))   # same steering, constant speed: a_lat barely changes
+    sim.step(np.array([[3 * 13 + 6], [3 * 13 + 6]]))  # straighten: lateral jerk ~ -10 again
+    assert sim.metrics["comfort_violations"][0, 0].item() == 2
+    np.testing.assert_array_equal(comfort_violations_np([0.0, 4.0, 0.0], [0.0, 0.0, 3.5], [0.0, 6.0, 0.0],
+                                                        [6.0, 6.0, 0.0]), [1, 2, 1])
 
 
 def test_reward_hand_computed_collision_goal_and_centring():

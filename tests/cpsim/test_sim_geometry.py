@@ -11,8 +11,8 @@ import torch
 
 import cpsim
 from cpsim.config import Controller
-from cpsim.kernels.geometry import (box_corners_np, boxes_overlap_np, classify_collision,
-                                    classify_fault)
+from cpsim.kernels import geometry as G
+from cpsim.kernels.geometry import box_corners_np, boxes_overlap_np, lane_distance_np
 from tests.cpsim.scenes import EDGE_HIGH, LANE_WIDTH, agent, make_scenario
 
 NORMAL = cpsim.profile("normal")
@@ -186,32 +186,138 @@ def test_pedestrians_are_not_offroad():
 
 # ----------------------------------------------------------------------------- lanes
 def test_lane_queries_offset_heading_error_and_no_lane():
-    sim = _solo_sim({"on_offroad": "ignore"}, W=4)
+    sim = _solo_sim({"on_offroad": "ignore"}, W=5)
     sim.set_controllers(np.array([Controller.STATIC]))
     place(sim, 0, 0, 100.0, 0.5, 0.1)          # 0.5 m left of lane 0, 0.1 rad error
     place(sim, 1, 0, 100.0, 2.0, -0.2)         # nearer lane 1 (y = 3.7): 1.7 m to its right
-    place(sim, 2, 0, 100.0, 30.0, 0.0)         # far from any lane
+    place(sim, 2, 0, 100.0, 30.0, 0.0)         # far from any lane (outside the grid)
     place(sim, 3, 0, 100.0, 0.0, math.pi)      # wrong way
-    sim.step(np.zeros((4, 1), np.int64))
+    place(sim, 4, 0, 100.0, -7.0, 0.0)         # 7 m right of lane 0: beyond the 4 m lane radius
+    sim.step(np.zeros((5, 1), np.int64))
     st = sim.state
     off, err, has = st.lane_offset.numpy()[:, 0], st.lane_err.numpy()[:, 0], st.has_lane.numpy()[:, 0]
-    assert has.tolist() == [True, True, False, True]
+    assert has.tolist() == [True, True, False, True, False]
     assert off[0] == pytest.approx(0.5, abs=1e-4) and err[0] == pytest.approx(0.1, abs=1e-5)
     assert off[1] == pytest.approx(2.0 - LANE_WIDTH, abs=1e-4) and err[1] == pytest.approx(-0.2, abs=1e-5)
     assert abs(err[3]) == pytest.approx(math.pi, abs=1e-5)
     m = sim.metrics
-    # aligned: heading error below 15 deg (0.1 and 0.2 rad are); no lane -> offset 10 m
-    assert m["aligned_steps"][:, 0].tolist() == [1, 1, 0, 0]
-    np.testing.assert_allclose(m["lateral_offset_sum"][:, 0].numpy(), [0.5, LANE_WIDTH - 2.0, 10.0, 0.0],
-                               atol=1e-4)
+    # aligned: heading error below 15 deg (0.1 and 0.2 rad are); with no lane within 4 m the
+    # lane_center metric still takes the true distance (no 10 m placeholder)
+    assert m["aligned_steps"][:, 0].tolist() == [1, 1, 0, 0, 0]
+    np.testing.assert_allclose(m["lateral_offset_sum"][:, 0].numpy(),
+                               [0.5, LANE_WIDTH - 2.0, 30.0 - LANE_WIDTH, 0.0, 7.0], atol=1e-4)
 
 
-def test_at_fault_matches_reference():
+def _lane_segments_of(host, g):
+    """(S, 4) lane segments and (S,) polyline ids of scenario g of a model (from its cells' lists)."""
+    first = int(host["grid_first"][g])
+    last = first + int(np.prod(host["grid_dims"][g]))
+    ids = np.unique(host["lane_items"][host["lane_start"][first]:host["lane_start"][last]])
+    return np.concatenate([host["seg_a"][ids], host["seg_b"][ids]], 1), host["seg_poly"][ids]
+
+
+def test_true_lane_distance_matches_reference_on_curved_maps():
+    """The ring search over the grid equals the brute-force distance to every lane segment."""
+    from cpsim.scenario.procedural import generate
+
+    scs = [generate(fam, seed=3) for fam in ("intersection", "roundabout", "merge")]
+    W = 96
+    sim = cpsim.Simulator(scs, num_worlds=W, max_agents=1, seed=0,
+                          config={"on_offroad": "ignore", "on_collision": "ignore"})
+    sim.reset(scenario_index=np.arange(W) % len(scs), conditions=NORMAL)
+    sim.set_controllers(np.full((W, 1), int(Controller.STATIC)))
+    host = sim.model.host
+    rng = np.random.default_rng(0)
+    pts = np.zeros((W, 2))
+    for w in range(W):
+        seg, _ = _lane_segments_of(host, w % len(scs))
+        lo, hi = seg.reshape(-1, 2).min(0) - 30.0, seg.reshape(-1, 2).max(0) + 30.0
+        pts[w] = rng.uniform(lo, hi)
+        place(sim, w, 0, *pts[w], 0.0)
+        sim.state.goal.numpy()[w, 0] = pts[w] + 1000.0
+    sim.step(np.zeros((W, 1), np.int64))
+    got = sim.metrics["lateral_offset_sum"][:, 0].numpy()
+    for w in range(W):
+        seg, _ = _lane_segments_of(host, w % len(scs))
+        assert got[w] == pytest.approx(float(lane_distance_np(pts[w], seg)), abs=2e-3), w
+    assert (got > 4.0).sum() >= 10  # many points are beyond the 4 m lane radius
+
+
+# ----------------------------------------------------------------------------- at fault
+CAR = np.array([4.5, 2.0])
+PED = cpsim.AgentType.PEDESTRIAN
+# (name, ego (x, y, heading, speed), other (x, y, heading, speed), other kind, ego's three
+#  positions before the pre-contact one (oldest first; None: it stood there), kind, at fault)
+FAULT_CASES = [
+    ("ego stopped, hit from behind", (100.0, 0.0, 0.0, 0.0), (95.2, 0.0, 0.0, 5.0), None, None,
+     G.STOPPED_EGO, False),
+    ("other stopped", (95.2, 0.0, 0.0, 5.0), (100.0, 0.0, 0.0, 0.0), None, None, G.STOPPED_TRACK, True),
+    ("rear-ended in lane", (100.0, 0.0, 0.0, 2.0), (95.0, 0.0, 0.0, 8.0), None, None, G.ACTIVE_REAR, False),
+    ("rear-ended while straddling", (100.0, 1.0, 0.0, 2.0), (95.0, 1.0, 0.0, 8.0), None,
+     [(99.4, 0.5), (99.6, 0.7), (99.8, 0.85)], G.ACTIVE_REAR, True),
+    ("front, closing 5 m/s", (95.2, 0.0, 0.0, 8.0), (100.0, 0.0, 0.0, 3.0), None, None, G.ACTIVE_FRONT, True),
+    ("ahead but closing 0.4 m/s: lateral", (95.7, 0.0, 0.0, 5.0), (100.0, 0.0, 0.0, 4.6), None, None,
+     G.ACTIVE_LATERAL, False),
+    ("side swipe by the other, ego in lane", (100.0, 0.0, 0.0, 5.0), (100.0, 2.3, -0.3, 5.0), None, None,
+     G.ACTIVE_LATERAL, False),
+    ("side swipe while changing lanes", (100.0, 1.0, 0.2, 5.0), (100.0, 3.3, 0.0, 5.0), None,
+     [(98.5, 0.3), (99.0, 0.53), (99.5, 0.77)], G.ACTIVE_LATERAL, True),
+    ("near two lanes but no drift", (100.0, 1.0, 0.0, 5.0), (100.0, 3.3, -0.3, 5.0), None,
+     [(98.5, 1.0), (99.0, 1.0), (99.5, 1.0)], G.ACTIVE_LATERAL, False),
+    ("drifting within one lane", (100.0, 0.3, 0.0, 5.0), (100.0, -2.0, 0.3, 5.0), None,
+     [(98.5, -0.5), (99.0, -0.2), (99.5, 0.1)], G.ACTIVE_LATERAL, False),
+    ("pedestrian", (100.0, 0.0, 0.0, 5.0), (103.0, 1.3, -math.pi / 2, 1.0), PED, None, G.VULNERABLE, True),
+    ("pedestrian walks into a stopped ego", (100.0, 0.0, 0.0, 0.0), (100.0, 1.5, -math.pi / 2, 1.5), PED, None,
+     G.VULNERABLE, True),
+]
+
+
+def _fault_world(sim, w, ego, other, history):
+    for a, (x, y, h, v) in enumerate((ego, other)):
+        place(sim, w, a, x, y, h, speed=v)
+    # the ring holds the pre-step positions; the step writes slot step_count % 4 = 0
+    hist = sim.state.pos_hist.numpy()
+    past = history if history is not None else [ego[:2]] * 3
+    for k, p in enumerate(past):
+        hist[w, 0, k + 1] = p
+    hist[w, 1, 1:] = other[:2]
+
+
+def test_at_fault_hand_made_cases():
+    """BehaviorBench's rules, one case each, in the simulator and in the NumPy reference."""
+    kinds = {None: cpsim.AgentType.VEHICLE, PED: PED}
+    scs = [make_scenario([agent(100.0, 0.0, goal=(180.0, 0.0)),
+                          agent(120.0, 3.7, goal=(190.0, 3.7), kind=k)], sid=str(int(k)))
+           for k in kinds.values()]
+    W = len(FAULT_CASES)
+    cfg = {"on_collision": "ignore", "on_offroad": "ignore", "dynamics": "classic"}
+    sim = cpsim.Simulator(scs, num_worlds=W, max_agents=2, seed=0, config=cfg)
+    sim.reset(scenario_index=[0 if c[3] is None else 1 for c in FAULT_CASES], conditions=NORMAL)
+    sim.set_controllers(np.full((W, 2), int(Controller.POLICY)))
+    for w, (_, ego, other, _, history, _, _) in enumerate(FAULT_CASES):
+        _fault_world(sim, w, ego, other, history)
+    sim.step(np.full((W, 2), KEEP))  # both keep their speed and heading for one step
+    collided = (sim.metrics["first_collision_step"] >= 0).numpy()[:, 0]
+    got = sim.metrics["at_fault"].numpy()[:, 0]
+    segs, polys = _lane_segments_of(sim.model.host, 0)  # both scenarios share the road
+    for w, (name, ego, other, kind_code, history, kind, fault) in enumerate(FAULT_CASES):
+        assert collided[w], name
+        assert bool(got[w]) == fault, name
+        vel = [np.array([v * math.cos(h), v * math.sin(h)]) for (_, _, h, v) in (ego, other)]
+        ref_kind = G.classify_collision(ego[:2], ego[2], vel[0], other[:2], vel[1], kind_code is not None)
+        assert ref_kind == kind, (name, G.COLLISION_KIND_NAMES[ref_kind])
+        past = history if history is not None else [ego[:2]] * 3
+        straddled = G.straddles_divider_np([*past, ego[:2]], ego[2], CAR[1], segs, polys)
+        assert G.classify_fault(ref_kind, straddled) == fault, name
+
+
+def test_at_fault_matches_reference_on_random_contacts():
     sc = make_scenario([agent(100.0, 0.0, goal=(180.0, 0.0)), agent(120.0, 3.7, goal=(190.0, 3.7))])
-    W = 48
-    sim = cpsim.Simulator([sc], num_worlds=W, max_agents=2, seed=0, config={"on_collision": "ignore"})
+    W = 64
+    cfg = {"on_collision": "ignore", "on_offroad": "ignore", "dynamics": "classic"}
+    sim = cpsim.Simulator([sc], num_worlds=W, max_agents=2, seed=0, config=cfg)
     sim.reset(conditions=NORMAL)
-    sim.set_controllers(np.array([Controller.STATIC, Controller.STATIC]))
+    sim.set_controllers(np.full((W, 2), int(Controller.POLICY)))
     rng = np.random.default_rng(3)
     cases = []
     for w in range(W):
@@ -220,38 +326,28 @@ def test_at_fault_matches_reference():
             y0 = rng.uniform(-0.5, 4.2)
             rel = rng.uniform(-4.5, 4.5, 2)
             h1 = rng.uniform(-np.pi, np.pi)
-            v0, v1 = rng.choice([0.0, 3.0, 8.0]), rng.choice([0.0, 4.0])
+            v0, v1 = rng.choice([0.0, 3.0, 8.0]), rng.choice([0.0, 0.4, 4.0])
             p0, p1 = np.array([100.0, y0]), np.array([100.0, y0]) + rel
-            if boxes_overlap_np(p0, h0, np.array([4.5, 2.0]) * 0.999, p1, h1, np.array([4.5, 2.0]) * 0.999) \
-                    and boxes_overlap_np(p0, h0, np.array([4.5, 2.0]) * 1.001, p1, h1, np.array([4.5, 2.0]) * 1.001):
+            f0, f1 = (np.array([math.cos(h), math.sin(h)]) for h in (h0, h1))
+            q0, q1 = p0 + 0.1 * v0 * f0, p1 + 0.1 * v1 * f1  # after one straight step
+            if boxes_overlap_np(q0, h0, CAR * 0.999, q1, h1, CAR * 0.999) \
+                    and boxes_overlap_np(q0, h0, CAR * 1.001, q1, h1, CAR * 1.001):
                 break
-        cases.append((p0, h0, v0, p1, h1, v1))
-        place(sim, w, 0, *p0, h0)
-        place(sim, w, 1, *p1, h1)
-    sim.step(np.zeros((W, 2), np.int64))
-    # STATIC agents have speed 0 during the events test, so poke speeds via a second look:
-    # the kernel saw speed 0 for both -> "stopped ego" -> never at fault
-    assert not sim.metrics["at_fault"].any()
-    # now with moving agents: REPLAY would overwrite poses, so use POLICY + classic keep action
-    sim2 = cpsim.Simulator([sc], num_worlds=W, max_agents=2, seed=0,
-                           config={"on_collision": "ignore", "dynamics": "classic"})
-    sim2.reset(conditions=NORMAL)
-    for w, (p0, h0, v0, p1, h1, v1) in enumerate(cases):
-        # place so that after one straight step at speed v the boxes sit at the sampled poses
-        place(sim2, w, 0, *(p0 - 0.1 * v0 * np.array([math.cos(h0), math.sin(h0)])), h0, speed=v0)
-        place(sim2, w, 1, *(p1 - 0.1 * v1 * np.array([math.cos(h1), math.sin(h1)])), h1, speed=v1)
-    sim2.step(np.full((W, 2), KEEP))
-    got = sim2.metrics["at_fault"].numpy()[:, 0]
-    collided = (sim2.metrics["first_collision_step"] >= 0).numpy()[:, 0]
-    assert collided.all()
-    lanes = np.array([0.0, LANE_WIDTH])
-    expect = []
-    for (p0, h0, v0, p1, h1, v1) in cases:
-        kind = classify_collision(p0, h0, v0, np.array([4.5, 2.0]), p1, h1, v1, np.array([4.5, 2.0]))
-        corners = box_corners_np(p0, h0, np.array([4.5, 2.0]))
-        d = np.abs(corners[:, 1:2] - lanes[None])  # lanes are the lines y = 0 and y = 3.7
-        ids = {int(np.argmin(r)) for r in d if r.min() <= 4.0}
-        expect.append(classify_fault(kind, len(ids) > 1))
+        past = [p0 + rng.uniform(-1.0, 0.0) * (k + 1) * np.array([1.0, rng.uniform(-0.4, 0.4)]) for k in range(3)][::-1]
+        cases.append((p0, h0, v0, p1, h1, v1, past))
+        _fault_world(sim, w, (*p0, h0, v0), (*p1, h1, v1), past)
+    sim.step(np.full((W, 2), KEEP))
+    got = sim.metrics["at_fault"].numpy()[:, 0]
+    assert (sim.metrics["first_collision_step"] >= 0).numpy()[:, 0].all()
+    segs, polys = _lane_segments_of(sim.model.host, 0)
+    expect, kinds = [], []
+    for (p0, h0, v0, p1, h1, v1, past) in cases:
+        kind = G.classify_collision(p0, h0, v0 * np.array([math.cos(h0), math.sin(h0)]), p1,
+                                    v1 * np.array([math.cos(h1), math.sin(h1)]))
+        straddled = G.straddles_divider_np([*past, p0], h0, CAR[1], segs, polys)
+        expect.append(G.classify_fault(kind, straddled))
+        kinds.append(kind)
     expect = np.array(expect)
     assert expect.any() and not expect.all()
+    assert len(set(kinds)) >= 4
     np.testing.assert_array_equal(got, expect)
