@@ -89,53 +89,323 @@ def hand_scenario(ego_goal_m: float = 30.0, sid: str = "hand") -> Scenario:
     )
 
 
-def test_score_matches_hand_computation() -> None:
-    s = hand_scenario()
-    terms = interactivity_terms(s)
-    assert terms.eligible and terms.reason == ""
-    assert terms.agents_valid_t0 == 5
-    # Goals >= 10 m among agents valid at t0: ego (30 m), agent 1 (12 m), agent 3 (20 m).
-    assert terms.agents_far_goal == 3
-    # Jerk samples: 89 per wheeled agent valid throughout (0, 1, 2, 4) + 39 for agent 5;
-    # only agent 1 contributes, |jerk| = 2 m/s^3.
-    mean_jerk = 89 * 2.0 / (4 * 89 + 39)
-    assert terms.mean_abs_jerk == pytest.approx(mean_jerk, rel=2e-3)
-    # Steering samples: agents 0, 1, 2 (89 each) + agent 5 (39); the cyclist is below 1 m/s.
-    # Only agent 2's steering changes, once, from atan(0.6 L * 0.2 rad/s / 10 m/s) to 0.
-    delta = math.atan(0.6 * LENGTH_2 * (YAW_STEP / DT) / 10.0)
-    mean_steer = (delta / DT) / (3 * 89 + 39)
-    assert terms.mean_abs_steer_rate == pytest.approx(mean_steer, rel=1e-4)
+# ----------------------------------------------------------------------------- hand-made scenes, one per term
+def scene(xy, *, velocity=None, heading=None, valid=None, goal=None, types=None, lengths=None,
+          lanes=(), ego: int = 0, sid: str = "term") -> Scenario:
+    """A scenario from (N, T, 2) positions. Defaults: velocity = forward difference of the
+    positions / dt (last step repeated), heading = direction of motion (0 when still), every
+    step valid, goal = last position, vehicles of 4.5 x 2 m, and ``lanes`` as the lane
+    centrelines (a far road edge when none)."""
+    xy = np.asarray(xy, np.float64)
+    n = xy.shape[0]
+    if velocity is None:
+        velocity = np.diff(xy, axis=1, append=xy[:, -1:] * 2 - xy[:, -2:-1]) / DT
+    velocity = np.asarray(velocity, np.float64)
+    if heading is None:
+        heading = np.arctan2(velocity[..., 1], velocity[..., 0])
+    valid = np.ones(xy.shape[:2], bool) if valid is None else np.asarray(valid, bool)
+    goal = xy[:, -1] if goal is None else np.asarray(goal, np.float64)
+    types = np.zeros(n, np.int8) if types is None else np.asarray(types, np.int8)
+    sizes = np.tile([4.5, 2.0], (n, 1))
+    if lengths is not None:
+        sizes[:, 0] = lengths
+    polylines = [np.asarray(p, np.float32) for p in lanes] or [np.array([[-5000, -5000], [-4990, -5000]], np.float32)]
+    return Scenario(
+        id=sid,
+        log_xy=xy.astype(np.float32),
+        log_heading=np.asarray(heading, np.float32),
+        log_velocity=velocity.astype(np.float32),
+        log_valid=valid,
+        goal_xy=goal.astype(np.float32),
+        sizes=sizes.astype(np.float32),
+        agent_types=types,
+        road_points=np.concatenate(polylines),
+        road_offsets=np.concatenate([[0], np.cumsum([len(p) for p in polylines])]).astype(np.int32),
+        road_types=np.full(len(polylines), RoadType.LANE if lanes else RoadType.ROAD_EDGE, np.int8),
+        ego_index=ego,
+        family="test",
+    )
+
+
+TT = np.arange(T, dtype=np.float64)
+
+
+def still(x: float, y: float) -> np.ndarray:
+    """(T, 2) an agent parked at (x, y)."""
+    return np.tile([x, y], (T, 1)).astype(np.float64)
+
+
+def ego_along_x() -> np.ndarray:
+    """(T, 2) the ego driving +x at 10 m/s from the origin (x = t m)."""
+    return np.stack([TT, np.zeros(T)], axis=-1)
+
+
+def test_agents_within_50m_at_t0() -> None:
+    xy = np.stack([still(0, 0), still(10, 0), still(0, 49.9), still(30, 40),  # 50 m exactly: counts
+                   still(30, 40.2), still(3, 0), still(-60, 0)])
+    valid = np.ones((7, T), bool)
+    valid[5, 0] = False  # 3 m away but not valid at t0
+    t = interactivity_terms(scene(xy, valid=valid, goal=np.tile([100.0, 0], (7, 1))))
+    assert t.agents_near_t0 == 3 and t.agents_valid_t0 == 6
+    assert t.capped()["agents_near_t0"] == pytest.approx(3 / 15)
+    many = np.stack([still(0, 0)] + [still(2.0 * k, 5) for k in range(20)])
+    assert interactivity_terms(scene(many)).capped()["agents_near_t0"] == 1.0  # 20 agents, capped at 15
+
+
+def test_mean_summed_accel_change() -> None:
+    n = 5
+    xy = np.stack([still(0, 0), still(0, 20), still(0, 40), still(0, 60), still(0, 80)])
+    speed = np.full((n, T), 10.0)
+    speed[1] = 10.0 + 0.1 * (TT % 2)  # a = +-1 m/s^2: |d a| = 2 every step
+    speed[2] = 10.0 + 1.0 * (TT % 2)  # a = +-10, clipped to +-4: |d a| = 8 every step
+    speed[3] = 10.0 + 0.1 * (TT % 2)  # |d a| = 2, but valid only from t = 50
+    speed[4] = 10.0 + 1.0 * (TT % 2)  # a pedestrian: not a wheeled agent, left out
+    velocity = np.stack([speed, np.zeros((n, T))], axis=-1)
+    valid = np.ones((n, T), bool)
+    valid[3, :50] = False
+    s = scene(xy, velocity=velocity, heading=np.zeros((n, T)), valid=valid,
+              types=[0, 0, AgentType.CYCLIST, 0, AgentType.PEDESTRIAN])
+    # 89 step triples t..t+2; agent 3 has them for t = 50..88 (39): summed per step, mean over steps.
+    expected = (89 * (2 + 8) + 39 * 2) / 89
+    t = interactivity_terms(s)
+    assert t.mean_accel_change == pytest.approx(expected, rel=1e-4)
+    assert t.capped()["mean_accel_change"] == pytest.approx(expected / 30, rel=1e-4)
+    # summed over agents: four copies of agent 2 saturate the cap (4 x 8 = 32 > 30)
+    crowd = scene(np.stack([still(0, 0)] + [still(0, 20 * k) for k in range(1, 5)]),
+                  velocity=np.stack([np.stack([np.full(T, 10.0)] + [speed[2]] * 4), np.zeros((5, T))], -1),
+                  heading=np.zeros((5, T)))
+    assert interactivity_terms(crowd).mean_accel_change == pytest.approx(32.0, rel=1e-4)
+    assert interactivity_terms(crowd).capped()["mean_accel_change"] == 1.0
+
+
+def test_mean_steering_change() -> None:
+    n = 4
+    xy = np.stack([still(0, 0), still(0, 20), still(0, 40), still(0, 60)])
+    heading = np.zeros((n, T))
+    heading[1] = 0.02 * np.minimum(TT, 45)  # 0.2 rad/s until t = 45, then straight
+    heading[2, 60:] = 0.5  # one 5 rad/s step: atan(4 x 5 / 10) = 1.107, clipped to 1 rad
+    heading[3] = np.where(TT % 2 == 0, 0.0, 1.0)  # erratic, but at 0.5 m/s: no steering
+    speed = np.array([10.0, 10.0, 10.0, 0.5])[:, None] * np.ones((n, T))
+    velocity = np.stack([speed * np.cos(heading), speed * np.sin(heading)], axis=-1)
+    s = scene(xy, velocity=velocity, heading=heading, lengths=[4.0, 4.0, 4.0, 4.0])
+    # delta_t = atan(length x yaw rate / speed): agent 1 from atan(0.08) to 0 once (t = 44 -> 45);
+    # agent 2 from 0 to 1 and back (t = 58 -> 59 -> 60). Samples: 89 for each of agents 0-2.
+    expected = (math.atan(4.0 * 0.2 / 10.0) + 2 * 1.0) / (3 * 89)
+    t = interactivity_terms(s)
+    assert t.mean_steer_change == pytest.approx(expected, rel=1e-4)
+    assert t.capped()["mean_steer_change"] == pytest.approx(expected / 2, rel=1e-4)
+    # driving straight along +-pi is no steering (headings wrap)
+    wrap_heading = heading.copy()
+    wrap_heading[0] = np.where(TT % 2 == 0, np.pi - 1e-4, -np.pi + 1e-4)
+    wrapped = dataclasses.replace(s, log_heading=wrap_heading.astype(np.float32))
+    assert interactivity_terms(wrapped).mean_steer_change == pytest.approx(
+        expected + 88 * 2 * math.atan(4.0 * 2e-3 / 10.0) / (3 * 89), rel=1e-3)
+
+
+def test_mean_agents_within_10m() -> None:
+    ego = ego_along_x()
+    xy = np.stack([ego, ego + [0, 10], ego + [0, 10.5], ego + [6, 8], still(45, 0)])
+    valid = np.ones((5, T), bool)
+    valid[3, 60:] = False
+    s = scene(xy, valid=valid, types=[0, AgentType.PEDESTRIAN, 0, AgentType.CYCLIST, 0])
+    # agent 1 (10 m, any type) for 91 steps, agent 3 (10 m) for its 60 valid steps, the
+    # parked car at x = 45 while the ego is within 10 m of it (t = 35..55, 21 steps).
+    t = interactivity_terms(s)
+    assert t.mean_neighbours == pytest.approx((91 + 60 + 21) / 91)
+    assert t.capped()["mean_neighbours"] == pytest.approx((91 + 60 + 21) / 91 / 3)
+
+
+@pytest.mark.parametrize("goal_m, capped", [(10.0, 0.0), (30.0, 0.5), (50.0, 1.0), (200.0, 1.0)])
+def test_ego_goal_distance_term(goal_m: float, capped: float) -> None:
+    xy = np.stack([still(0, 0)] + [still(0, 20 * k) for k in range(1, 5)])
+    goal = np.tile([0.0, 0.0], (5, 1))
+    goal[0] = [0.6 * goal_m, 0.8 * goal_m]
+    t = interactivity_terms(scene(xy, goal=goal))
+    assert t.ego_goal_distance == pytest.approx(goal_m, rel=1e-6)
+    assert t.capped()["ego_goal_distance"] == pytest.approx(capped, abs=1e-6)
+
+
+def test_path_crossings_within_5m() -> None:
+    ego = ego_along_x()  # x = 0..90 on y = 0
+    crossing_early = np.stack([np.full(T, 50.0), 45.0 - TT], axis=-1)  # crosses x = 50 at t = 45 (ego at 45)
+    crossing_late = np.stack([np.full(T, 20.0), 80.0 - TT], axis=-1)  # crosses x = 20 at t = 80, ego long gone
+    xy = np.stack([ego, crossing_early, crossing_late,
+                   ego + [0, 5.0],  # alongside at 5 m: counts
+                   ego + [0, 5.1],  # 5.1 m: does not
+                   still(95, 4),  # parked 5 m from where the ego stops (90, 0)? 6.4 m: no
+                   still(93, 4),  # 5 m from (90, 0): counts
+                   np.stack([np.full(T, 60.0), 30.0 - TT], axis=-1)])  # crosses only while invalid
+    valid = np.ones((8, T), bool)
+    valid[7, 20:40] = False  # y = 10..-9 at x = 60: the crossing is not in its valid log
+    valid[7, 40:] = False
+    s = scene(xy, valid=valid, types=[0, AgentType.PEDESTRIAN, 0, 0, 0, 0, 0, 0])
+    t = interactivity_terms(s)
+    assert t.path_crossings == 4  # agents 1, 2, 3, 6
+    assert t.capped()["path_crossings"] == pytest.approx(4 / 5)
+
+
+def test_time_to_collision_steps() -> None:
+    ego = ego_along_x()  # 10 m/s along +x
+    xy = np.stack([
+        ego,
+        still(100, 0),  # closing at 10 m/s; TTC < 3 s once closer than 30 m: t = 71..90 (20 steps)
+        ego + [20.0, 0.0] + np.stack([0.1 * TT, np.zeros(T)], -1),  # ahead, receding: never
+        still(75, 1.0),  # closing; TTC < 3 s for t in 46..75 (overlaps agent 1's steps)
+        ego + [25.0, 0.0] - np.stack([0.004 * TT, np.zeros(T)], -1),  # closing at 0.04 m/s: never
+        ego + [60.0, 0.0] - np.stack([2.0 * TT, np.zeros(T)], -1),  # closing at 20 m/s, valid only > 50 m
+    ])
+    valid = np.ones((6, T), bool)
+    valid[5, 4:] = False  # distances 60, 58, 56, 54 m: TTC < 3 s but beyond 50 m
+    s = scene(xy, valid=valid)
+    d3 = np.hypot(75.0 - TT, 1.0)
+    closing3 = 10.0 * (75.0 - TT) / d3
+    steps3 = set(np.flatnonzero((closing3 > 0.1) & (d3 < 3 * closing3)).tolist())
+    expected = set(range(71, 91)) | steps3
+    t = interactivity_terms(s)
+    assert steps3 and min(steps3) == 46 and t.ttc_steps == len(expected)
+    assert t.capped()["ttc_steps"] == 1.0  # more than 20 steps
+    only_far = interactivity_terms(scene(xy[[0, 1, 2, 4, 5]], valid=valid[[0, 1, 2, 4, 5]]))
+    assert only_far.ttc_steps == 20 and only_far.capped()["ttc_steps"] == 1.0
+    assert interactivity_terms(scene(xy[[0, 2, 4, 5]], valid=valid[[0, 2, 4, 5]])).ttc_steps == 0
+
+
+def test_ego_heading_change() -> None:
+    xy = np.stack([still(0, 0)] + [still(0, 20 * k) for k in range(1, 5)])
+    heading = np.zeros((5, T))
+    heading[0] = np.linspace(0.2, 1.2, T)  # net change 1 rad
+    t = interactivity_terms(scene(xy, heading=heading))
+    assert t.ego_heading_change == pytest.approx(1.0, rel=1e-5)
+    assert t.capped()["ego_heading_change"] == pytest.approx(1.0 / (math.pi / 2), rel=1e-5)
+    heading[0] = np.where(TT < 45, 3.0, -3.0)  # across +-pi: 0.28 rad, not 6
+    valid = np.ones((5, T), bool)
+    valid[0, 80:] = False  # the last valid step counts
+    heading[0, 80:] = 1.0
+    t = interactivity_terms(scene(xy, heading=heading, valid=valid))
+    assert t.ego_heading_change == pytest.approx(2 * math.pi - 6.0, rel=1e-4)
+    heading[0] = np.linspace(0.0, -3.0, T)  # a U-turn saturates
+    assert interactivity_terms(scene(xy, heading=heading)).capped()["ego_heading_change"] == 1.0
+
+
+# Lanes: a straight lane to x = 100, its straight continuation to x = 500, and a left turn
+# that starts where the first one ends; an opposite lane 3.5 m to the left.
+STRAIGHT_1 = [[-20.0 + k, 0.0] for k in range(121)]
+STRAIGHT_2 = [[100.0 + 2 * k, 0.0] for k in range(201)]
+LEFT_TURN = [[100.0 + 30 * math.sin(a), 30 - 30 * math.cos(a)] for a in np.linspace(0, math.pi / 2, 20)] + \
+    [[130.0, 30.0 + 2 * k] for k in range(1, 100)]
+OPPOSITE = [[300.0 - 2 * k, 3.5] for k in range(161)]
+LANES = (STRAIGHT_1, LEFT_TURN, STRAIGHT_2, OPPOSITE)
+
+
+def lane_scene(goal_xy, lanes=LANES, ego_heading: float = 0.0, ego_y: float = 0.0) -> Scenario:
+    ego = np.tile([0.0, ego_y], (T, 1))  # parked at the start: only the lane chain matters here
+    xy = np.stack([ego] + [still(-30.0 * k, 40) for k in range(1, 5)])
+    heading = np.zeros((5, T))
+    heading[0] = ego_heading
+    goal = np.tile([0.0, 0.0], (5, 1))
+    goal[0] = goal_xy
+    return scene(xy, heading=heading, goal=goal, lanes=lanes)
+
+
+@pytest.mark.parametrize("goal, on_chain", [
+    ((60.0, 2.0), True),  # on the ego's lane
+    ((250.0, -4.9), True),  # on its straight continuation, within 5 m
+    ((250.0, 5.5), False),  # 5.5 m off
+    ((298.0, 0.0), True),  # within the 300 m ahead
+    ((306.0, 0.0), False),  # beyond 300 m + 5 m
+    ((130.0, 100.0), False),  # on the left turn: not the straight chain
+    ((-15.0, 0.0), False),  # on the lane, but behind the ego
+])
+def test_lane_multiplier(goal, on_chain: bool) -> None:
+    t = interactivity_terms(lane_scene(goal))
+    assert t.goal_on_lane_chain is on_chain
+    assert t.lane_mult == (0.5 if on_chain else 1.0)
+    chain = cs.splits.ego_lane_chain(lane_scene(goal))
+    assert chain[0] == pytest.approx([0.0, 0.0]) and chain[-1] == pytest.approx([300.0, 0.0], abs=1e-4)
+
+
+def test_lane_chain_picks_the_ego_lane_and_follows_continuations() -> None:
+    # Facing -x, the ego's lane is the opposite one (3.5 m away), not the nearer straight lane.
+    chain = cs.splits.ego_lane_chain(lane_scene((50.0, 0.0), ego_heading=math.pi, ego_y=0.5))
+    assert np.allclose(chain[:, 1], 3.5) and chain[-1][0] == pytest.approx(-20.0, abs=1e-3)  # lane ends at x = -20
+    assert interactivity_terms(lane_scene((-10.0, 3.0), ego_heading=math.pi, ego_y=0.5)).lane_mult == 0.5
+    # No lane within 5 m, or none aligned with the ego: no chain, the goal is off it.
+    assert cs.splits.ego_lane_chain(lane_scene((60.0, 0.0), ego_y=-6.0)) is None
+    assert interactivity_terms(lane_scene((60.0, 0.0), ego_y=-6.0)).lane_mult == 1.0
+    assert cs.splits.ego_lane_chain(lane_scene((60.0, 0.0), ego_heading=math.pi / 2)) is None
+    # Without the straight continuation the chain turns left with the only successor.
+    turn = lane_scene((130.0, 100.0), lanes=(STRAIGHT_1, LEFT_TURN))
+    assert interactivity_terms(turn).lane_mult == 0.5
+
+
+def test_lane_multiplier_halves_the_score() -> None:
+    on = lane_scene((250.0, 0.0))
+    off = lane_scene((250.0, 0.0), lanes=(STRAIGHT_1, LEFT_TURN, OPPOSITE))  # the chain turns away
+    t_on, t_off = interactivity_terms(on), interactivity_terms(off)
+    assert (t_on.lane_mult, t_off.lane_mult) == (0.5, 1.0)
+    assert t_on.score == pytest.approx(0.5 * t_off.score) and t_off.score > 0
+
+
+def test_score_is_the_weighted_sum_of_capped_terms() -> None:
+    """One scene with every term known in closed form (weights and caps of BehaviorBench)."""
+    ego = ego_along_x()
+    xy = np.stack([ego, still(100, 0), ego + [0, 5.0], still(30, 40), still(200, 0), still(0, 8)])
+    heading = np.zeros((6, T))
+    heading[0] = np.linspace(0.0, 0.5, T)  # net heading change 0.5 rad (motion stays +x)
+    velocity = np.stack([np.full((6, T), 0.0), np.zeros((6, T))], axis=-1)
+    velocity[0, :, 0] = velocity[2, :, 0] = 10.0
+    goal = np.tile([0.0, 0.0], (6, 1))
+    goal[0] = [0.0, 30.0]  # 30 m from the ego's start, off its lane
+    s = scene(xy, heading=heading, velocity=velocity, goal=goal, lanes=(STRAIGHT_1, STRAIGHT_2))
+    t = interactivity_terms(s)
+    # agents within 50 m at t0: 2 (5 m), 3 (50 m), 5 (8 m); the parked car at x = 100 is 100 m away
+    assert t.agents_near_t0 == 3
+    assert t.mean_accel_change == 0.0  # constant speeds
+    # the ego's heading turns 0.5 / 90 rad per step at 10 m/s: steering atan(4.5 x 0.0556 / 10)
+    # constant, so no steering change (agent 2 moves straight)
+    assert t.mean_steer_change == pytest.approx(0.0, abs=1e-5)
+    # within 10 m: agent 2 always; agent 5 (x = 0, y = 8) while |t| <= 6 (7 steps);
+    # the parked car at 100 m is within 10 m for no step (the ego stops at x = 90)... 10 m: t = 90
+    near_100 = int(np.sum(np.abs(100.0 - TT) <= 10.0))
+    mean_neighbours = (91 + 7 + near_100) / 91
+    assert t.mean_neighbours == pytest.approx(mean_neighbours)
+    # paths within 5 m: agent 2 (alongside), agent 1 (parked at x = 100: 10 m from the last ego
+    # point, no); agent 5 (8 m from the ego's path), no
+    assert t.path_crossings == 1
+    # TTC: only the parked car at x = 100 ahead: t = 71..90
+    assert t.ttc_steps == 20
+    assert t.ego_heading_change == pytest.approx(0.5, rel=1e-5)
+    assert not t.goal_on_lane_chain and t.lane_mult == 1.0
+    expected = (0.10 * 3 / 15 + 0.10 * 0 + 0.05 * 0 + 0.10 * min(mean_neighbours / 3, 1)
+                + 0.15 * (30 - 10) / 40 + 0.25 * 1 / 5 + 0.20 * 1.0 + 0.05 * 0.5 / (math.pi / 2))
+    assert t.score == pytest.approx(expected, rel=1e-4)
+    assert sum(t.contributions().values()) == pytest.approx(t.score)
+    assert interactivity_score(s) == t.score and cs.interactivity_score is interactivity_score
+    assert sum(w for _n, w, _c in cs.splits.TERMS) == pytest.approx(1.0)
+    assert [(w, c) for _n, w, c in cs.splits.TERMS] == [(0.10, 15.0), (0.10, 30.0), (0.05, 2.0), (0.10, 3.0),
+                                                         (0.15, 40.0), (0.25, 5.0), (0.20, 20.0),
+                                                         (0.05, math.pi / 2)]
+
+
+def test_hand_scenario_terms() -> None:
+    """The six-agent scene of the split tests: the terms its construction fixes."""
+    t = interactivity_terms(hand_scenario())
+    assert t.eligible and t.reason == "" and t.agents_valid_t0 == 5
+    assert t.agents_near_t0 == 4  # agents 1 (5 m), 2 (50 m), 3 (3 m), 4 (10.5 m); 5 not valid at t0
     # Neighbours within 10 m of the ego: agent 1 for 30 steps, the pedestrian for 91,
     # agent 5 for 41; the cyclist at 10.5 m never counts.
-    mean_neighbours = (30 + 91 + 41) / 91
-    assert terms.mean_neighbours == pytest.approx(mean_neighbours)
-    assert terms.ego_goal_distance == pytest.approx(30.0)
-    expected = (0.20 * min(3 / 15, 1) + 0.25 * min(mean_jerk / 30, 1) + 0.15 * min(mean_steer / 2, 1)
-                + 0.20 * min(mean_neighbours / 3, 1) + 0.20 * min((30.0 - 10) / 40, 1))
-    assert interactivity_score(s) == pytest.approx(expected, rel=1e-4)
-    assert cs.interactivity_score is interactivity_score
+    assert t.mean_neighbours == pytest.approx((30 + 91 + 41) / 91)
+    assert t.ego_goal_distance == pytest.approx(30.0)
+    assert t.path_crossings == 3  # agents 1, 3 (pedestrian) and 5; the cyclist's path is 10.5 m away
+    assert t.ego_heading_change == 0.0 and t.lane_mult == 1.0  # no lanes in this scene
 
 
 def test_saturated_terms_cap_at_one() -> None:
     s = hand_scenario(ego_goal_m=200.0)
     t = interactivity_terms(s)
     assert t.ego_goal_distance == pytest.approx(200.0)
+    assert t.capped()["ego_goal_distance"] == 1.0
     low = interactivity_score(hand_scenario(ego_goal_m=50.0))  # (50 - 10) / 40 = 1: saturated
     assert interactivity_score(s) == pytest.approx(low)
-
-
-def test_heading_wrap_is_not_steering() -> None:
-    base = hand_scenario()
-    heading = np.array(base.log_heading)
-    # Ego drives straight along +-pi: raw differences jump by 2 pi, wrapped ones are ~0.
-    heading[0] = np.where(np.arange(T) % 2 == 0, np.pi - 1e-3, -np.pi + 1e-3)
-    velocity = np.array(base.log_velocity)
-    velocity[0] = [-10.0, 0.0]
-    wrapped = dataclasses.replace(base, log_heading=heading, log_velocity=velocity)
-    assert interactivity_terms(wrapped).mean_abs_steer_rate == pytest.approx(
-        interactivity_terms(base).mean_abs_steer_rate + 89 * 2 * math.atan(0.6 * 4.5 * 0.02 / 10) / DT / 306,
-        rel=1e-3,
-    )
 
 
 @pytest.mark.parametrize("change, reason", [
@@ -161,8 +431,12 @@ def test_ineligible_tasks_get_none_not_zero(change: str, reason: str) -> None:
     assert terms.mean_neighbours >= 0.0  # terms are still reported
 
 
-def test_exactly_ten_metres_is_eligible() -> None:
+def test_exactly_ten_metres_and_five_agents_are_eligible() -> None:
     assert interactivity_score(hand_scenario(ego_goal_m=10.0)) is not None
+    five = interactivity_terms(scene(np.stack([ego_along_x()] + [still(0, 20 * k) for k in range(1, 5)])))
+    assert five.agents_valid_t0 == 5 and five.eligible  # ego goal 90 m away
+    four = interactivity_terms(scene(np.stack([ego_along_x()] + [still(0, 20 * k) for k in range(1, 4)])))
+    assert not four.eligible and four.score is None
 
 
 @settings(max_examples=25, deadline=None)
@@ -172,6 +446,7 @@ def test_score_is_in_unit_interval_for_random_logs(seed: int) -> None:
     n = int(rng.integers(1, 12))
     valid = rng.random((n, T)) < 0.8
     valid[0, :] = True
+    lane = np.cumsum(rng.normal(0, 3, (30, 2)), axis=0).astype(np.float32)
     s = Scenario(
         id=f"r{seed}",
         log_xy=rng.normal(0, 20, (n, T, 2)).astype(np.float32),
@@ -181,17 +456,20 @@ def test_score_is_in_unit_interval_for_random_logs(seed: int) -> None:
         goal_xy=rng.normal(0, 60, (n, 2)).astype(np.float32),
         sizes=rng.uniform(0.5, 10, (n, 2)).astype(np.float32),
         agent_types=rng.integers(0, 4, n).astype(np.int8),
-        road_points=np.zeros((1, 2), np.float32),
-        road_offsets=np.array([0, 1], np.int32),
-        road_types=np.array([RoadType.STOP_SIGN], np.int8),
+        road_points=np.concatenate([lane, lane[::-1] + 1]),
+        road_offsets=np.array([0, 30, 60], np.int32),
+        road_types=np.array([RoadType.LANE, RoadType.LANE], np.int8),
         ego_index=0,
     )
     terms = interactivity_terms(s)
     assert (terms.score is None) == (not terms.eligible)
     if terms.score is not None:
         assert 0.0 <= terms.score <= 1.0
-    for value in (terms.mean_abs_jerk, terms.mean_abs_steer_rate, terms.mean_neighbours):
+    assert terms.lane_mult in (0.5, 1.0)
+    for value in (terms.mean_accel_change, terms.mean_steer_change, terms.mean_neighbours,
+                  terms.ego_heading_change, terms.path_crossings, terms.ttc_steps, terms.agents_near_t0):
         assert np.isfinite(value) and value >= 0.0
+    assert all(0.0 <= c <= 1.0 for c in terms.capped().values())
 
 
 # ----------------------------------------------------------------------------- splits
