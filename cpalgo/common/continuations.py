@@ -367,7 +367,7 @@ class ContinuationRunner:
         replay = np.flatnonzero(traffic == _TRAFFIC_CODE["replay"])
         if replay.size:
             ctrl = _np(sim.controllers)[replay].astype(np.int32)
-            co = (ctrl == _POLICY) & ~is_focal[replay]
+            co = (ctrl == _POLICY) & counted[replay] & ~is_focal[replay]  # live co-players of the root
             sim.set_controllers(np.where(co, _REPLAY, ctrl).astype(np.int32), worlds=replay)
         controllers = _np(sim.controllers)[:n_used].astype(np.int64).copy()
         proxy_rows = (traffic == _TRAFFIC_CODE["proxy"])[:, None] & ~is_focal & counted  # (n, A)

@@ -35,7 +35,12 @@ RECIPE = """cpsim/SelfPlay-v0:
 """
 
 
-def test_counterplay_methods_lists_the_six_as_baselines():
+def test_counterplay_methods_lists_the_six_as_baselines(capsys):
+    from cpalgo.cli import main
+
+    assert main(["methods"]) == 0
+    listed = {line.split()[0]: line.split()[1] for line in capsys.readouterr().out.splitlines() if line.strip()}
+    assert all(listed.get(name) == "baseline" for name in ALL_METHODS)
     names = method_names()
     for name in ALL_METHODS:
         assert name in names

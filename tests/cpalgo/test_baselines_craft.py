@@ -84,8 +84,8 @@ def test_craft_objective_and_ema(anchor):
     terms = model._generation_terms(0.2)
     assert set(terms) == {"craft_score_loss", "craft_kl_forward", "craft_kl_reverse"}
     # the policy equals its EMA right after the anchor: both KL terms are zero
-    assert float(terms["craft_kl_forward"]) == pytest.approx(0.0, abs=1e-7)
-    assert float(terms["craft_kl_reverse"]) == pytest.approx(0.0, abs=1e-7)
+    assert float(terms["craft_kl_forward"].detach()) == pytest.approx(0.0, abs=1e-7)
+    assert float(terms["craft_kl_reverse"].detach()) == pytest.approx(0.0, abs=1e-7)
     old_ema = {k: v.clone() for k, v in model.ema_policy.state_dict().items()}
     model.train()
     new = model.policy.state_dict()
