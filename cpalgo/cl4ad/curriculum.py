@@ -16,7 +16,8 @@ into the curriculum's scenario with the conditions just drawn.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 

@@ -44,8 +44,9 @@ Shapes: W worlds, A agent slots, G continuations per group, T decisions, D obser
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th

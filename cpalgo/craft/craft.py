@@ -43,7 +43,13 @@ import numpy as np
 import torch as th
 
 from cpalgo.common.continuations import (
-    ContinuationPPO, ContinuationRoot, GroupJob, GroupResult, ProxyFn, collate_continuations, continuation_logits,
+    ContinuationPPO,
+    ContinuationRoot,
+    GroupJob,
+    GroupResult,
+    ProxyFn,
+    collate_continuations,
+    continuation_logits,
     group_normalized,
 )
 from cpalgo.common.hooked_train import categorical_kl, check_number, masked_mean

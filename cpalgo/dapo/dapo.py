@@ -28,7 +28,12 @@ import numpy as np
 import torch as th
 
 from cpalgo.common.continuations import (
-    ContinuationPPO, ContinuationRoot, GroupResult, collate_continuations, continuation_logits, group_normalized,
+    ContinuationPPO,
+    ContinuationRoot,
+    GroupResult,
+    collate_continuations,
+    continuation_logits,
+    group_normalized,
     mixed_outcome,
 )
 from cpalgo.common.hooked_train import check_number

@@ -31,7 +31,12 @@ import numpy as np
 import torch as th
 
 from cpalgo.common.continuations import (
-    ContinuationPPO, ContinuationRoot, GroupJob, GroupResult, collate_continuations, continuation_logits,
+    ContinuationPPO,
+    ContinuationRoot,
+    GroupJob,
+    GroupResult,
+    collate_continuations,
+    continuation_logits,
     group_normalized,
 )
 from cpalgo.common.hooked_train import check_number

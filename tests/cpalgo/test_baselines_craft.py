@@ -79,7 +79,7 @@ def test_craft_objective_and_ema(anchor):
     batch = model._group_batch
     assert batch is not None and model._ema_logits is not None
     # the corrected returns were used: proxy continuations shifted by the residual table
-    roots, results = model.last_groups
+    _, results = model.last_groups
     assert model.residual.count.sum() == len(results) * model.residual_rollouts
     terms = model._generation_terms(0.2)
     assert set(terms) == {"craft_score_loss", "craft_kl_forward", "craft_kl_reverse"}

@@ -54,4 +54,4 @@ def test_vineppo_trains_no_group_objective(anchor):
     before = [p.detach().clone() for p in model.policy.parameters()]
     model.train()
     assert any(not th.equal(a, b) for a, b in zip(before, model.policy.parameters()))
-    assert not any(k.startswith("train/dapo") or k.startswith("train/grpo") for k in model.logger.name_to_value)
+    assert not any(k.startswith(("train/dapo", "train/grpo")) for k in model.logger.name_to_value)
