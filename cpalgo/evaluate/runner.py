@@ -62,6 +62,8 @@ EGO_CONTROLLERS: dict[str, int] = {"replay": int(Controller.REPLAY), "expert": i
 DEFAULT_BC_PATH = shipped_path("bc_traffic.pt")
 #: The shipped reward-conditioned self-play anchor: default co-player of the policy regimes.
 DEFAULT_TRAFFIC_PATH = shipped_path("anchor.zip")
+#: Agent slots per world by default: every agent present at t0, up to BehaviorBench's 128.
+MAX_EVAL_AGENTS = 128
 
 _POLICY = int(Controller.POLICY)
 _RUNNING, _GOAL, _COLLISION, _OFFROAD, _TIMEOUT = (int(o) for o in (Outcome.RUNNING, Outcome.GOAL, Outcome.COLLISION,
@@ -388,7 +390,17 @@ class EvalConfig:
             only; the task fields and the goal test are the evaluation criterion's
             (:data:`cpsim.config.EVAL_GOAL`, 2 m, no effective speed limit).
         max_worlds: worlds per simulator chunk (task-regimes evaluated at once).
-        max_agents: agent slots per world (None: the largest scenario, capped at 64).
+        max_agents: agent slots per world (None: the most agents present at t0 in any task,
+            capped at :data:`MAX_EVAL_AGENTS` = 128, BehaviorBench's limit; slots go to the
+            ego, then controllable vehicles, then the other agents by distance to the ego).
+        coplayers: who follows the traffic regime (``cpsim.envs.regimes.COPLAYER_RULES``):
+            ``controllable`` (default: vehicles present at t0 whose goal is >= 2 m away,
+            PufferDrive's controlled agents; parked vehicles replay their logs) or
+            ``vehicles`` (every vehicle present at t0 except the ego, BehaviorBench's rule as
+            DESIGN.md states it). ``vehicles`` is not the default yet: a parked vehicle's goal
+            is within the 2 m evaluation radius at t0, so the simulator scores it as arrived on
+            its first step and removes it (IDM and policy regimes) -- the scene would lose
+            its parked cars until the simulator exempts agents that start at their goal.
         seed: simulator seed and mix-regime draw.
         device: simulator device (``cpu`` or ``cuda``).
         progress: show a progress bar over task-regimes.
@@ -402,6 +414,7 @@ class EvalConfig:
     deploy_condition: str | tuple[float, ...] = "normal"
     max_worlds: int = 256
     max_agents: int | None = None
+    coplayers: str = "controllable"
     seed: int = 0
     device: str = "cpu"
     progress: bool = True
@@ -423,6 +436,10 @@ class EvalConfig:
             raise ValueError(f"max_agents: must be >= 1, got {self.max_agents}")
         if self.torch_threads is not None and self.torch_threads < 1:
             raise ValueError(f"torch_threads: must be >= 1 or None, got {self.torch_threads}")
+        from cpsim.envs.regimes import COPLAYER_RULES
+
+        if self.coplayers not in COPLAYER_RULES:
+            raise ValueError(f"coplayers: must be one of {list(COPLAYER_RULES)}, got {self.coplayers!r}")
 
 
 class Evaluator:
@@ -482,7 +499,8 @@ class Evaluator:
                 index[(t.scenario_id, t.ego)] = len(self.scenarios)
                 self.scenarios.append(t.scenario)
         self.scenario_index = {k: v for k, v in index.items()}
-        max_agents = self.config.max_agents or min(64, max(s.num_agents for s in self.scenarios))
+        max_agents = self.config.max_agents or min(
+            MAX_EVAL_AGENTS, max(max(int(s.log_valid[:, 0].sum()) for s in self.scenarios), 1))
         n_items = len(self.tasks) * len(self.regimes)
         self.num_worlds = int(min(self.config.max_worlds, n_items))
         # one goal test for every deployment condition and every agent (DESIGN.md,
@@ -510,15 +528,17 @@ class Evaluator:
         from cpsim.envs.regimes import TrafficDriver
 
         drivers = {}
+        rule = self.config.coplayers
         for i, regime in enumerate(self.regimes):
+            seed = self.config.seed + i
             if regime == "bc":
-                drv = TrafficDriver("policy", self.bc_policy, condition="normal", seed=self.config.seed + i)
+                drv = TrafficDriver("policy", self.bc_policy, condition="normal", seed=seed, coplayers=rule)
             elif regime == "selfplay":
-                drv = TrafficDriver("policy", self.traffic_policy, seed=self.config.seed + i)
+                drv = TrafficDriver("policy", self.traffic_policy, seed=seed, coplayers=rule)
             elif regime in ("aggressive", "normal", "cautious", "mix"):
-                drv = TrafficDriver(regime, self.traffic_policy, seed=self.config.seed + i)
+                drv = TrafficDriver(regime, self.traffic_policy, seed=seed, coplayers=rule)
             else:
-                drv = TrafficDriver(regime, None, seed=self.config.seed + i)
+                drv = TrafficDriver(regime, None, seed=seed, coplayers=rule)
             drivers[regime] = drv
         return drivers
 

@@ -25,10 +25,17 @@ mix        ``model``; the three profiles rotate over the co-players (BehaviorBen
 Aliases (:data:`REGIME_ALIASES`): ``expert`` = replay; ``log-imitation`` and
 ``self-play`` = policy (the evaluation passes the matching model).
 
-Co-players are the *controllable* agents of a world (vehicles valid at t0 with a goal,
-:attr:`Scenario.controllable`) other than the ego slot; the remaining agents
-(pedestrians, cyclists, agents that appear later) keep the simulator's default
-controller (log replay).
+Which agents are co-players is the driver's ``coplayers`` rule (:data:`COPLAYER_RULES`):
+
+* ``controllable`` (default; training): the *controllable* agents of a world (vehicles
+  valid at t0 with a goal >= 2 m away, :attr:`Scenario.controllable`, PufferDrive's
+  controlled agents) other than the ego slot;
+* ``vehicles`` (BehaviorBench's rule): every vehicle present at t0 other than the ego slot,
+  parked ones included.
+
+The remaining agents (pedestrians, cyclists, and under ``controllable`` the parked
+vehicles) keep the simulator's default controller (log replay). Agents that appear after
+t0 have no slot.
 """
 
 from __future__ import annotations
@@ -45,6 +52,8 @@ REGIME_ALIASES: dict[str, str] = {"expert": "replay", "log-imitation": "policy",
 #: regimes whose co-players are POLICY agents and need a model
 POLICY_REGIMES: tuple[str, ...] = ("policy", "aggressive", "normal", "cautious", "mix")
 MIX_PROFILES: tuple[str, ...] = ("aggressive", "normal", "cautious")
+#: Who the co-players are (see the module docstring).
+COPLAYER_RULES: tuple[str, ...] = ("controllable", "vehicles")
 
 # cpsim.config.Controller values (contract in docs/ARCHITECTURE.md)
 _POLICY, _REPLAY, _IDM, _STATIC = 0, 1, 2, 3
@@ -96,12 +105,21 @@ def load_policy(path: str | os.PathLike, argument: str = "coplayer_model") -> An
     raise ValueError(f"{argument}: cannot load {str(path)!r} as an SB3 checkpoint ({'; '.join(errors)[:400]})")
 
 
-def controllable_table(scenarios: Sequence[Any]) -> np.ndarray:
-    """(S, N_max) bool: ``table[s, i]`` = agent i of scenario s is controllable (False past N)."""
+def controllable_table(scenarios: Sequence[Any], rule: str = "controllable") -> np.ndarray:
+    """(S, N_max + 1) bool: ``table[s, i]`` = agent i of scenario s is a co-player candidate
+    under ``rule`` (:data:`COPLAYER_RULES`): controllable, or a vehicle valid at t0
+    (``vehicles``). False past N (the last column pads index -1)."""
+    if rule not in COPLAYER_RULES:
+        raise ValueError(f"coplayers: unknown rule {rule!r}; accepted: {list(COPLAYER_RULES)}")
+    from cpsim.scenario.datatypes import AgentType
+
     n_max = max(sc.num_agents for sc in scenarios)
     table = np.zeros((len(scenarios), n_max + 1), bool)  # last column: padding for index -1
     for s, sc in enumerate(scenarios):  # once per pool, not per step
-        table[s, : sc.num_agents] = sc.controllable
+        if rule == "controllable":
+            table[s, : sc.num_agents] = sc.controllable
+        else:
+            table[s, : sc.num_agents] = (sc.agent_types == AgentType.VEHICLE) & sc.log_valid[:, 0]
     return table
 
 
@@ -120,6 +138,8 @@ class TrafficDriver:
         deterministic: passed to ``model.predict``.
         seed: kept for compatibility (``mix`` rotates its profiles deterministically).
         ego_slot: the slot driven by the caller (never a co-player).
+        coplayers: who the co-players are (:data:`COPLAYER_RULES`): ``controllable``
+            (default) or ``vehicles`` (every vehicle present at t0, BehaviorBench).
 
     Each co-player slot keeps its own recurrent state (batched as
     ``(layers, W * A, hidden)`` arrays); :meth:`assign` marks the slots of the reset
@@ -127,8 +147,12 @@ class TrafficDriver:
     """
 
     def __init__(self, regime: str, model: Any = None, *, condition: str | Sequence[float] | None = None,
-                 deterministic: bool = True, seed: int | None = 0, ego_slot: int = 0):
+                 deterministic: bool = True, seed: int | None = 0, ego_slot: int = 0,
+                 coplayers: str = "controllable"):
         self.regime = resolve_regime(regime)
+        if coplayers not in COPLAYER_RULES:
+            raise ValueError(f"coplayers: unknown rule {coplayers!r}; accepted: {list(COPLAYER_RULES)}")
+        self.coplayers = coplayers
         if self.regime in POLICY_REGIMES and isinstance(model, (str, os.PathLike)):
             model = load_policy(model)
         if self.regime in POLICY_REGIMES:
@@ -165,7 +189,7 @@ class TrafficDriver:
     def _bind(self, sim: Any) -> None:
         if self._sim is not sim:
             self._sim = sim
-            self._table = controllable_table(sim.scenarios)
+            self._table = controllable_table(sim.scenarios, self.coplayers)
             w, a = sim.num_worlds, sim.max_agents
             self._coplayer = np.zeros((w, a), bool)
             self._episode_start = np.ones(w * a, bool)
@@ -178,7 +202,7 @@ class TrafficDriver:
             self._coplayer[slice(None) if worlds is None else np.asarray(worlds, np.int64)] = False
 
     def coplayer_mask(self, sim: Any, worlds: np.ndarray | None = None) -> np.ndarray:
-        """(len(worlds), A) bool: slots of controllable agents other than the ego slot."""
+        """(len(worlds), A) bool: slots of co-players (the ``coplayers`` rule), never the ego slot."""
         self._bind(sim)
         worlds = np.arange(sim.num_worlds) if worlds is None else np.asarray(worlds, np.int64)
         agent_index = _to_numpy(sim.agent_index)[worlds]
@@ -276,5 +300,5 @@ class TrafficDriver:
         return actions
 
 
-__all__ = ["REGIMES", "REGIME_ALIASES", "POLICY_REGIMES", "MIX_PROFILES", "TrafficDriver",
+__all__ = ["REGIMES", "REGIME_ALIASES", "POLICY_REGIMES", "MIX_PROFILES", "COPLAYER_RULES", "TrafficDriver",
            "resolve_regime", "controllable_table", "load_policy", "CoplayerFn"]

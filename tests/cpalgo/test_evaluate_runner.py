@@ -236,3 +236,130 @@ def test_sb3_checkpoint_ego_and_traffic_in_every_regime(tasks, tmp_path):
     small = BCPolicy(layout.size - 3, env.action_space.n, (8,)).save(tmp_path / "small.pt")
     with pytest.raises(ValueError, match="bc_policy: observation size"):
         R.Evaluator(two, ["bc"], bc_policy=small)
+
+
+# ----------------------------------------------------------------------------- co-players (issue 17, item 10)
+def with_extra_agents(sc, parked: int, sid: str):
+    """``sc`` plus ``parked`` parked vehicles (goal = their t0 position) in a row 300 m away,
+    one pedestrian present at t0 and one vehicle that appears at t = 10 (no slot)."""
+    import dataclasses
+
+    from cpsim.scenario import AgentType
+
+    T = sc.num_steps
+    k = parked + 2
+    base = sc.log_xy[sc.ego_index, 0] + np.array([0.0, 300.0], np.float32)
+    xy0 = base + np.stack([6.0 * np.arange(k), np.zeros(k)], -1).astype(np.float32)
+    valid = np.ones((k, T), bool)
+    valid[-1, :10] = False
+    types = np.array([AgentType.VEHICLE] * parked + [AgentType.PEDESTRIAN, AgentType.VEHICLE], np.int8)
+    extra = {
+        "log_xy": np.concatenate([sc.log_xy, np.repeat(xy0[:, None], T, 1)]),
+        "log_heading": np.concatenate([sc.log_heading, np.zeros((k, T), np.float32)]),
+        "log_velocity": np.concatenate([sc.log_velocity, np.zeros((k, T, 2), np.float32)]),
+        "log_valid": np.concatenate([sc.log_valid, valid]),
+        "goal_xy": np.concatenate([sc.goal_xy, xy0]),
+        "sizes": np.concatenate([sc.sizes, np.tile(np.array([[4.5, 2.0]], np.float32), (k, 1))]),
+        "agent_types": np.concatenate([sc.agent_types, types]),
+    }
+    if sc.mark_as_expert is not None:
+        extra["mark_as_expert"] = np.concatenate([sc.mark_as_expert, np.zeros(k, bool)])
+    if sc.agent_ids is not None:
+        extra["agent_ids"] = np.concatenate([sc.agent_ids, sc.agent_ids.max() + 1 + np.arange(k)])
+    return dataclasses.replace(sc, id=sid, **extra)
+
+
+def test_slots_hold_every_agent_present_at_t0_up_to_128(tasks):
+    """Slots: every agent present at t0 (not every agent of the log), up to BehaviorBench's 128."""
+    sc = tasks[0].scenario
+    mid = with_extra_agents(sc, 70, "seventy")  # more than the old cap of 64
+    n0 = int(mid.log_valid[:, 0].sum())
+    assert n0 > 64 and mid.num_agents > n0  # agents absent at t0 (the late vehicle...) get no slot
+    ev = R.Evaluator([R.Task("random", 0, mid)], ["replay"], config=R.EvalConfig(progress=False))
+    assert ev.sim.max_agents == n0
+    assert int((ev.sim.agent_index.numpy()[0] >= 0).sum()) == n0
+    big = with_extra_agents(sc, 140, "many")
+    ev = R.Evaluator([R.Task("random", 0, mid), R.Task("random", 1, big)], ["replay"],
+                     config=R.EvalConfig(progress=False, max_worlds=2))
+    assert R.MAX_EVAL_AGENTS == 128 and ev.sim.max_agents == 128
+    ev.sim.reset(scenario_index=np.array([1, 0]))
+    slots = ev.sim.agent_index.numpy()
+    assert (slots[0] >= 0).all() and int((slots[1] >= 0).sum()) == n0
+    assert R.Evaluator(tasks[:1], ["replay"], config=R.EvalConfig(progress=False, max_agents=8)).sim.max_agents == 8
+
+
+@pytest.mark.parametrize("rule", ["controllable", "vehicles"])
+def test_coplayer_rule_decides_who_follows_the_regime(tasks, rule):
+    """``controllable``: controllable vehicles follow the regime, parked ones replay;
+    ``vehicles`` (BehaviorBench): every vehicle present at t0 but the ego; pedestrians
+    replay under both; the ego slot is never a co-player."""
+    from cpsim.config import Controller
+    from cpsim.scenario import AgentType
+
+    sc = with_extra_agents(tasks[0].scenario, 5, "parked")
+    ev = R.Evaluator([R.Task("random", 0, sc)], ["idm"], config=R.EvalConfig(progress=False, coplayers=rule))
+    ev.sim.reset(scenario_index=np.array([0]))
+    drv = ev._drivers["idm"]
+    assert drv.coplayers == rule
+    drv.assign(ev.sim, np.array([0]))
+    idx = ev.sim.agent_index.numpy()[0]
+    ctrl = ev.sim.controllers.numpy()[0]
+    ok = idx >= 0
+    vehicle = np.zeros(idx.size, bool)
+    vehicle[ok] = sc.agent_types[idx[ok]] == AgentType.VEHICLE
+    controllable = np.zeros(idx.size, bool)
+    controllable[ok] = sc.controllable[idx[ok]]
+    follows = (vehicle if rule == "vehicles" else controllable).copy()
+    follows[0] = False  # the ego slot
+    assert idx[0] == sc.ego_index
+    assert (ctrl[follows] == int(Controller.IDM)).all()
+    assert (ctrl[ok & ~follows][1:] == int(Controller.REPLAY)).all()
+    parked = vehicle & ~controllable
+    parked[0] = False
+    assert parked.sum() >= 5 and (vehicle & ~follows)[1:].any() == (rule == "controllable")
+    assert (ctrl[parked] == (int(Controller.IDM) if rule == "vehicles" else int(Controller.REPLAY))).all()
+    with pytest.raises(ValueError, match="coplayers"):
+        R.EvalConfig(coplayers="everyone")
+
+
+def test_ego_is_the_task_agent_not_the_sdc(tasks):
+    """A task whose ego is another controllable agent: slot 0 is that agent, starts at its
+    logged t0 pose and is scored against its own goal."""
+    import dataclasses
+
+    sc = tasks[0].scenario
+    others = [int(i) for i in np.flatnonzero(sc.controllable) if i != sc.ego_index]
+    assert others
+    task = R.Task("random", 0, dataclasses.replace(sc, ego_index=others[0]))
+    ev = R.Evaluator([task], ["replay"], config=R.EvalConfig(progress=False, record=(0,)))
+    res = ev.run("expert")
+    assert int(res.columns["ego"][0]) == others[0]
+    traj = res.trajectories[0]
+    np.testing.assert_allclose(traj["xy"][0, 0], sc.log_xy[others[0], 0], atol=1e-3)
+    np.testing.assert_allclose(traj["goal_xy"], sc.goal_xy[others[0]], atol=1e-3)
+
+
+def test_every_agent_is_tested_against_the_evaluation_goal(expert):
+    """Co-players too: the evaluation goal test (2 m, no effective speed limit), whatever
+    their condition. A co-player whose log passes its goal only faster than 5 m/s still
+    arrives under replay."""
+    from cpsim.config import EVAL_GOAL, Outcome
+
+    ev, res = expert
+    assert ev.sim.config.goal_criterion == "evaluation" and EVAL_GOAL.radius == 2.0 and EVAL_GOAL.speed >= 100
+    fast_arrivals = 0
+    for row, traj in res.trajectories.items():
+        if res.columns["regime"][row] != "replay":
+            continue
+        sc = _scenario_of(ev, res.columns["scenario_id"][row])
+        idx = ev.sim.model.slot_order[ev.scenario_index[(sc.id, sc.ego_index)]][:ev.sim.max_agents]
+        for slot, agent in enumerate(idx[1:], start=1):
+            d = np.linalg.norm(sc.log_xy[agent] - sc.goal_xy[agent], axis=-1)
+            inside = sc.log_valid[agent] & (d < 2.0)
+            inside[0] = False
+            if inside.any() and (sc.log_speed[agent][inside] > 5.0).all():
+                if int(traj["outcome"][slot]) in (int(Outcome.COLLISION), int(Outcome.OFFROAD)):
+                    continue
+                assert int(traj["outcome"][slot]) == int(Outcome.GOAL), (row, slot)
+                fast_arrivals += 1
+    assert fast_arrivals >= 1
