@@ -130,8 +130,9 @@ def _set_threads(threads: int | None) -> None:
 def _make_env(recipe: Recipe, seed: int, num_worlds: int | None = None, **overrides: Any) -> Any:
     """The recipe's self-play env with its ``vec_env_wrapper`` list (a ``VecMonitor`` first
     when the list has none: it gives SB3 its episode statistics)."""
-    import cpsim
     from stable_baselines3.common.vec_env import VecMonitor
+
+    import cpsim
 
     if recipe.zoo_only:
         raise UsageError(f"--config: {sorted(recipe.zoo_only)} in {recipe.path} are applied by rl-zoo3 only "
@@ -196,7 +197,10 @@ def cmd_pool(args: argparse.Namespace) -> int:
     print(f"{'family':<14}{'count':>6}{'agents':>8}{'controllable':>14}{'roads':>7}{'ego goal m':>12}")
     for fam, group in sorted(by_family.items()):
         sums = [s.summary() for s in group]
-        mean = lambda k: sum(x[k] for x in sums) / len(sums)  # noqa: E731
+
+        def mean(key: str, sums: list = sums) -> float:
+            return sum(x[key] for x in sums) / len(sums)
+
         print(f"{fam:<14}{len(group):>6}{mean('agents'):>8.1f}{mean('controllable'):>14.1f}"
               f"{mean('roads'):>7.0f}{mean('ego_goal_distance_m'):>12.1f}")
     return 0

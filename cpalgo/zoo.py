@@ -39,6 +39,7 @@ from gymnasium import spaces
 
 from cpalgo.recipes import SELFPLAY_ENV_ID
 
+
 class SelfPlaySettings(gymnasium.Env):
     """Carrier of the self-play settings for rl-zoo3 (``gymnasium.make("cpsim/SelfPlay-v0", **kw)``).
 
@@ -249,7 +250,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         import rl_zoo3.train
 
         for module in (rl_zoo3.train,):
-            getattr(module, "ALGOS")["counterplay"] = sys.modules["cpalgo"].CounterPlay
+            module.ALGOS["counterplay"] = sys.modules["cpalgo"].CounterPlay
         rl_zoo3.train.train()
     else:
         import rl_zoo3.enjoy

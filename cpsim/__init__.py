@@ -7,7 +7,6 @@ compilation, no torch import) and registers the Gymnasium environments.
 from __future__ import annotations
 
 from cpsim._lazy import lazy_exports
-
 from cpsim.conditions import (
     CONDITION_FIELDS,
     NUM_CONDITION_FIELDS,

@@ -30,7 +30,6 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from cpsim.atomic import atomic_path
-
 from cpsim.scenario.datatypes import RoadType, Scenario
 
 # Enum values of cpsim.config.Controller / Outcome (kept as ints so that rendering a

@@ -90,13 +90,13 @@ def task_score(
     otherwise ``100 * (0.2 comfort + 0.5 lane_align + 0.3 lane_center)``.
     """
     wc, wa, wl = SCORE_WEIGHTS
-    c, a, l = (_as_float(v, n) for v, n in ((comfort, "comfort"), (lane_align, "lane_align"),
+    c, a, lc = (_as_float(v, n) for v, n in ((comfort, "comfort"), (lane_align, "lane_align"),
                                              (lane_center, "lane_center")))
-    for v, n in ((c, "comfort"), (a, "lane_align"), (l, "lane_center")):
+    for v, n in ((c, "comfort"), (a, "lane_align"), (lc, "lane_center")):
         if np.any((v < -1e-9) | (v > 1 + 1e-9)):
             raise ValueError(f"{n}: values must lie in [0, 1]")
     success = np.asarray(goal, bool) & ~np.asarray(at_fault_collision, bool) & ~np.asarray(offroad, bool)
-    return np.where(success, 100.0 * (wc * c + wa * a + wl * l), 0.0)
+    return np.where(success, 100.0 * (wc * c + wa * a + wl * lc), 0.0)
 
 
 def episode_scores(metrics: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -475,7 +475,7 @@ class ContinuationRunner:
             returns[cut] += (self.gamma ** length[cut]) * values.reshape(-1).cpu().numpy()
 
         results = []
-        for k, job in enumerate(jobs):
+        for k in range(len(jobs)):
             lo, hi = int(offsets[k]), int(offsets[k + 1])
             results.append(GroupResult(
                 returns=returns[lo:hi].copy(), completed=outcome[lo:hi] == OUTCOME_GOAL, outcome=outcome[lo:hi].copy(),

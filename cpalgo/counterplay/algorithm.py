@@ -44,15 +44,15 @@ from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
 from cpalgo.common.buffers import MaskedRecurrentDictRolloutBuffer, MaskedRecurrentRolloutBuffer
+from cpalgo.common.policy_utils import put_states, take_states
 from cpalgo.common.progress import LearnProgressBar
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, collate_teachers, distill_loss
-from cpalgo.common.policy_utils import put_states, take_states
 from cpalgo.counterplay.driver import FAILURE_OUTCOMES, SearchDriver, SearchSettings, SearchStats
 from cpalgo.counterplay.records import check_keep_searches, keep_wave
 from cpalgo.policies import POLICY_ALIASES

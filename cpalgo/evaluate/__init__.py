@@ -13,9 +13,8 @@ Heavy modules (simulator, torch, matplotlib) are imported lazily on first access
 
 from __future__ import annotations
 
+from cpalgo.evaluate.metrics import OutcomeClass, outcome_class, task_score
 from cpsim._lazy import lazy_exports
-
-from cpalgo.evaluate.metrics import OutcomeClass, task_score, outcome_class
 
 _LAZY = {
     "evaluate": "cpalgo.evaluate.runner",

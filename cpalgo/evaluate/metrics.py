@@ -29,8 +29,7 @@ from typing import Mapping
 import numpy as np
 
 # the per-episode scores live with the simulator (the env infos report them too)
-from cpsim.scoring import (COMFORT_CHECKS_PER_STEP, LANE_CENTER_CLAMP, SCORE_WEIGHTS, episode_scores,
-                           metrics_from_accumulators, task_score)
+from cpsim.scoring import metrics_from_accumulators
 
 # ----------------------------------------------------------------------------- constants
 #: Comfort thresholds: |a_long| (m/s^2), |a_lat| (m/s^2), |jerk| (m/s^3).

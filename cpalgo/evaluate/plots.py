@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 
-from cpsim.atomic import atomic_path
 from cpalgo.evaluate import metrics as M
+from cpsim.atomic import atomic_path
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure

@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from cpsim.atomic import atomic_path, default_mode
 from cpalgo.evaluate import metrics as M
+from cpsim.atomic import atomic_path, default_mode
 
 if TYPE_CHECKING:  # pragma: no cover
     from cpalgo.evaluate.runner import EvalResult

@@ -305,9 +305,10 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         if key in overrides and isinstance(overrides[key], list):
             overrides[key] = tuple(overrides[key])
     env = _mapping(doc.get("env"), where, "env")
-    from cpsim import SelfPlayVecEnv
-    from cpalgo.methods import algorithm_parameters
     import inspect
+
+    from cpalgo.methods import algorithm_parameters
+    from cpsim import SelfPlayVecEnv
 
     env_params = set(inspect.signature(SelfPlayVecEnv.__init__).parameters) - {"self", "config_overrides", "num_worlds"}
     from cpsim.config import SimConfig
@@ -315,7 +316,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     sim_fields = {f.name for f in dataclasses.fields(SimConfig)}
     for key in env:
         if key not in env_params and key not in sim_fields:
-            raise _fail(where, f"env.{key}", f"not an argument of cpsim.SelfPlayVecEnv or a SimConfig field")
+            raise _fail(where, f"env.{key}", "not an argument of cpsim.SelfPlayVecEnv or a SimConfig field")
     worlds = doc.get("worlds")
     worlds = None if worlds is None else _whole(worlds, where, "worlds", 1)
 

@@ -30,8 +30,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cpsim.atomic import atomic_path
 from cpalgo.experiments.grid import ANCHOR, GridConfig, RunSpec
+from cpsim.atomic import atomic_path
 
 __all__ = ["run_dir", "run_status", "execute_run", "train_run", "evaluate_columns", "load_columns",
            "budget_state", "restore_budget_state", "write_bytes_atomic", "write_json_atomic"]
@@ -118,9 +118,9 @@ def restore_budget_state(model: Any, state: dict[str, Any]) -> None:
 # ----------------------------------------------------------------------------- training
 def make_env(grid: GridConfig, recipe: Any, seed: int) -> Any:
     """The recipe's self-play env (plus the grid's ``env`` overrides), ``VecMonitor``-wrapped."""
-    import cpsim
     from stable_baselines3.common.vec_env import VecMonitor
 
+    import cpsim
     from cpalgo.recipes import import_string
 
     if recipe.normalize is not None:

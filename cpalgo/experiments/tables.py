@@ -41,7 +41,6 @@ import numpy as np
 from cpalgo.evaluate import metrics as M
 from cpalgo.experiments.grid import ANCHOR, GridConfig
 from cpalgo.experiments.runs import load_columns, run_dir, write_bytes_atomic
-from cpalgo.experiments.grid import RunSpec
 
 __all__ = ["GridResults", "collect_results", "results_csv", "markdown_report", "write_tables", "repaired",
            "RESULT_METRICS"]
@@ -224,7 +223,7 @@ def _table_i(res: GridResults, lines: list[str]) -> None:
 
 
 def _n_tasks(res: GridResults, split: str) -> int:
-    for (method, seed, dep), cols in res.evals.items():
+    for cols in res.evals.values():
         m = cols["split"] == split
         if m.any():
             return int(np.unique(np.asarray(cols["task"])[m]).size)

@@ -19,10 +19,9 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from cpsim.conditions import NUM_CONDITION_FIELDS, deployment_condition, sample_conditions
 from cpsim.config import Controller, Outcome
 from cpsim.envs.regimes import TrafficDriver
+from cpsim.envs.selfplay import OUTCOME_NAMES, _np, copy_obs, make_simulator, observation_space_for, resolve_scenarios
 from cpsim.envs.viewer import HumanViewer, tile
 from cpsim.scoring import episode_scores
-from cpsim.envs.selfplay import (OUTCOME_NAMES, _np, copy_obs, make_simulator, observation_space_for,
-                                 resolve_scenarios)
 
 EGO_SLOT = 0
 _POLICY = int(Controller.POLICY)

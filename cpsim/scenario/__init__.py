@@ -14,16 +14,7 @@
 from __future__ import annotations
 
 from cpsim._lazy import lazy_exports
-
-from cpsim.scenario.datatypes import (
-    DT,
-    MIN_GOAL_DISTANCE,
-    NUM_STEPS,
-    AgentType,
-    RoadType,
-    Scenario,
-    ScenarioError,
-)
+from cpsim.scenario.datatypes import DT, MIN_GOAL_DISTANCE, NUM_STEPS, AgentType, RoadType, Scenario, ScenarioError
 
 _LAZY = {
     "generate": "cpsim.scenario.procedural",

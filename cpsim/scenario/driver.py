@@ -39,11 +39,7 @@ import dataclasses
 import numpy as np
 
 from cpsim.scenario.datatypes import DT, NUM_STEPS
-from cpsim.scenario.geometry_utils import (
-    BatchedPolylines,
-    cumulative_length,
-    vertex_headings,
-)
+from cpsim.scenario.geometry_utils import BatchedPolylines, cumulative_length
 
 __all__ = [
     "CONFLICT_DISTANCE", "CROSS", "MERGE", "DIVERGE", "LaneConflicts", "lane_conflicts", "right_of_way",

@@ -359,7 +359,6 @@ def _family_roundabout(rng: np.random.Generator, net: _Net) -> None:
     centre = np.zeros(2)
     u = [_unit(a) for a in angles]
     nrm = [_unit(a + np.pi / 2) for a in angles]
-    ring_point = lambda a: centre + r_ring * _unit(a)  # noqa: E731
     ins, outs, entries, exits, ring_at, ring_between = [], [], [], [], [], []
     for k in range(arms):
         far, near = (r_arm + arm_length) * u[k], r_arm * u[k]

@@ -60,14 +60,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cpsim.atomic import atomic_path
-
-from cpsim.scenario.datatypes import (
-    NUM_STEPS,
-    AgentType,
-    RoadType,
-    Scenario,
-    ScenarioError,
-)
+from cpsim.scenario.datatypes import NUM_STEPS, AgentType, RoadType, Scenario, ScenarioError
 
 try:  # optional: about 4x faster parsing; stdlib json is the fallback and handles NaN
     import orjson as _orjson
@@ -780,9 +773,9 @@ def bench_load(folder: Path, repeat: int) -> list[dict[str, Any]]:
             rows.append({
                 "file": json_path.name,
                 "agents": scenario.num_agents,
-                "json_ms": best(lambda: load_json(json_path)),
-                "npz_ms": best(lambda: load_cache(packed)),
-                "npz_raw_ms": best(lambda: load_cache(raw)),
+                "json_ms": best(lambda path=json_path: load_json(path)),
+                "npz_ms": best(lambda path=packed: load_cache(path)),
+                "npz_raw_ms": best(lambda path=raw: load_cache(path)),
                 "json_kb": json_path.stat().st_size / 1024,
                 "npz_kb": packed.stat().st_size / 1024,
                 "npz_raw_kb": raw.stat().st_size / 1024,

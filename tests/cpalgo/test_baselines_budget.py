@@ -12,12 +12,18 @@ import pytest
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
 from cpalgo.experiments.runner import run_experiment  # noqa: E402
-from cpalgo.methods import get_method, method_names  # noqa: E402
+from cpalgo.methods import build_method, get_method, method_names  # noqa: E402
 from cpalgo.recipes import CosineSchedule  # noqa: E402
 from tests.cpalgo.test_baselines_common import (  # noqa: E402,F401
-    ALGO, ALL_METHODS, CONTINUATION_METHODS, _one_torch_thread, anchor, make_env, save_anchor, tiny_settings,
+    ALGO,
+    ALL_METHODS,
+    CONTINUATION_METHODS,
+    _one_torch_thread,
+    anchor,
+    make_env,
+    save_anchor,
+    tiny_settings,
 )
-from cpalgo.methods import build_method  # noqa: E402
 
 RECIPE = """cpsim/SelfPlay-v0:
   policy: 'MlpLstmPolicy'

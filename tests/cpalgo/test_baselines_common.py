@@ -13,7 +13,12 @@ import torch as th
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
 from cpalgo.common.continuations import (  # noqa: E402
-    ContinuationRunner, GroupJob, RootReservoir, branch_simulator_factory, group_normalized, interaction_trigger,
+    ContinuationRunner,
+    GroupJob,
+    RootReservoir,
+    branch_simulator_factory,
+    group_normalized,
+    interaction_trigger,
     neutral_action,
 )
 from cpalgo.methods import build_method  # noqa: E402

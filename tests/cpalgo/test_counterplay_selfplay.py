@@ -10,11 +10,12 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
+from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
+from stable_baselines3.common.logger import configure  # noqa: E402
+
 import cpalgo.counterplay.driver as driver_module  # noqa: E402
 from cpalgo import CounterPlay  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
-from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
-from stable_baselines3.common.logger import configure  # noqa: E402
 
 EPISODE = 40
 POLICY = dict(lstm_hidden_size=16, net_arch=[32])

@@ -4,10 +4,8 @@ main job, on tiny settings (2 worlds x 4 slots, LSTM 16, one or two evaluation t
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,11 +15,10 @@ import yaml
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
 from cpalgo.evaluate.metrics import OutcomeClass  # noqa: E402
-from cpalgo.experiments.grid import GridError, load_grid  # noqa: E402
+from cpalgo.experiments.grid import GridError, RunSpec, load_grid  # noqa: E402
 from cpalgo.experiments.runner import ray_available, run_experiment, runs_of  # noqa: E402
-from cpalgo.experiments.runs import run_dir, write_bytes_atomic, write_json_atomic  # noqa: E402
+from cpalgo.experiments.runs import run_dir, write_bytes_atomic  # noqa: E402
 from cpalgo.experiments.tables import collect_results, markdown_report, repaired, results_csv  # noqa: E402
-from cpalgo.experiments.grid import RunSpec  # noqa: E402
 from cpalgo.methods.base import BudgetedCounterPlay  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 

@@ -9,6 +9,8 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
+from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
+
 import cpalgo.methods as methods_module  # noqa: E402
 from cpalgo.common.policy_utils import actor_logits  # noqa: E402
 from cpalgo.counterplay.distill import collate_teachers  # noqa: E402
@@ -19,7 +21,6 @@ from cpalgo.methods.ppo import OpponentPPO, RewindPPO  # noqa: E402
 from cpalgo.recipes import CosineSchedule  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 from cpsim.conditions import PROFILES, STYLE_MASK  # noqa: E402
-from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
 
 EPISODE = 40
 POLICY = dict(lstm_hidden_size=16, enable_critic_lstm=False, net_arch=[32])

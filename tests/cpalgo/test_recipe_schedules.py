@@ -8,8 +8,15 @@ import pickle
 import pytest
 import yaml
 
-from cpalgo.recipes import (SELFPLAY_ENV_ID, ZOO_DIR, CosineSchedule, LinearSchedule, load_recipe,
-                            parse_schedule, zoo_preprocess_schedules)
+from cpalgo.recipes import (
+    SELFPLAY_ENV_ID,
+    ZOO_DIR,
+    CosineSchedule,
+    LinearSchedule,
+    load_recipe,
+    parse_schedule,
+    zoo_preprocess_schedules,
+)
 
 
 def test_cosine_schedule_values():

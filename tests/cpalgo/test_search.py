@@ -5,15 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cpalgo.counterplay.search import (
-    BranchOutcome,
-    admit,
-    choose_teacher,
-    rank_branches,
-    rank_key,
-    select_root,
-    verify,
-)
+from cpalgo.counterplay.search import BranchOutcome, admit, choose_teacher, rank_branches, rank_key, select_root, verify
 
 # ----------------------------------------------------------------------------- select_root
 

@@ -68,7 +68,7 @@ def test_gymnasium_make_and_episode(scenarios):
     obs, info = env.reset(seed=0)
     assert obs.shape == env.observation_space.shape and obs.dtype == np.float32
     assert info["scenario_id"] in {s.id for s in scenarios}
-    for t in range(STEPS + 1):
+    for t in range(STEPS + 1):  # noqa: B007 (t is read after the loop)
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         assert isinstance(reward, float)
         if terminated or truncated:
@@ -357,7 +357,7 @@ def test_fixed_deployment_condition_keeps_one_goal_test(condition):
     task = env.obs_layout.condition.start + np.flatnonzero(~STYLE_MASK)
     reference = DriveEnv([sc], condition="normal", episode_steps=30, max_agents=2).reset(seed=0)[0]
     np.testing.assert_array_equal(obs[task], reference[task])
-    for t in range(1, 31):
+    for t in range(1, 31):  # noqa: B007 (t is read after the loop)
         _, _, terminated, truncated, info = env.step(2 * 3 + 1)  # zero jerks: constant 10 m/s
         if terminated or truncated:
             break

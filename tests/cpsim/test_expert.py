@@ -6,7 +6,6 @@ import functools
 
 import numpy as np
 import pytest
-import torch
 
 import cpsim
 from cpsim.config import Controller, Outcome

@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 
 import cpsim
-from cpsim.conditions import (FIELD_INDEX, PROFILES, STYLE_MASK, TRAIN_HIGH, TRAIN_LOW, deployment_condition,
-                              sample_conditions)
+from cpsim.conditions import (
+    FIELD_INDEX,
+    PROFILES,
+    STYLE_MASK,
+    TRAIN_HIGH,
+    TRAIN_LOW,
+    deployment_condition,
+    sample_conditions,
+)
 from cpsim.config import EVAL_GOAL, GOAL_CRITERIA, Outcome, SimConfig
 from tests.cpsim.scenes import agent, make_scenario
 

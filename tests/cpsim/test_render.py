@@ -25,14 +25,17 @@ def cross_scenario() -> Scenario:
     roads, types = [], []
     xs = np.linspace(-40, 40, 17)
     for y, d in ((-1.9, 1), (1.9, -1)):
-        roads.append(np.stack([xs[::d], np.full_like(xs, y)], 1)); types.append(RoadType.LANE)
-        roads.append(np.stack([np.full_like(xs, -y), xs[::-d]], 1)); types.append(RoadType.LANE)
+        roads.append(np.stack([xs[::d], np.full_like(xs, y)], 1))
+        types.append(RoadType.LANE)
+        roads.append(np.stack([np.full_like(xs, -y), xs[::-d]], 1))
+        types.append(RoadType.LANE)
     for s in (-3.8, 3.8):
         for a, b in ((-40, -3.8), (3.8, 40)):
             seg = np.array([[a, s], [b, s]])
-            roads.append(seg); types.append(RoadType.ROAD_EDGE)
-            roads.append(seg[:, ::-1].copy()); types.append(RoadType.ROAD_EDGE)
-    roads.append(np.array([[-40, 0.0], [-6, 0]])); types.append(RoadType.ROAD_LINE)
+            roads += [seg, seg[:, ::-1].copy()]
+            types += [RoadType.ROAD_EDGE, RoadType.ROAD_EDGE]
+    roads.append(np.array([[-40, 0.0], [-6, 0]]))
+    types.append(RoadType.ROAD_LINE)
     roads.append(np.array([[-5.5, -3.8], [-4.5, -3.8], [-4.5, 3.8], [-5.5, 3.8]]))
     types.append(RoadType.CROSSWALK)
     pts = np.concatenate(roads).astype(np.float32)

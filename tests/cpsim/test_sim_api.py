@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -26,7 +28,7 @@ def test_config_rejects_unknown_keys_and_bad_values():
             SimConfig.from_dict({field: value})
     cfg = SimConfig.from_dict({"dynamics": "classic", "num_partners": 63, "num_road": 200})
     assert cfg.num_actions == 91 and SimConfig().num_actions == 12
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.dt = 0.2  # frozen
     assert cfg.replace(box_scale=0.7).box_scale == 0.7
 

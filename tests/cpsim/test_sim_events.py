@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 import cpsim
 from cpsim.conditions import FIELD_INDEX

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 
 import cpsim
-from cpsim.scenario import AgentType, RoadType, Scenario, ScenarioError
-from cpsim.scenario import womd
+from cpsim.scenario import AgentType, RoadType, Scenario, ScenarioError, womd
 from cpsim.scenario.womd import (
     CACHE_FORMAT_VERSION,
     LoadReport,
