@@ -28,8 +28,13 @@ from typing import Mapping
 
 import numpy as np
 
-# the per-episode scores live with the simulator (the env infos report them too)
-from cpsim.scoring import metrics_from_accumulators
+# the per-episode scores live with the simulator (the env infos report them too); re-exported
+from cpsim.scoring import COMFORT_CHECKS_PER_STEP as COMFORT_CHECKS_PER_STEP
+from cpsim.scoring import LANE_CENTER_CLAMP as LANE_CENTER_CLAMP
+from cpsim.scoring import SCORE_WEIGHTS as SCORE_WEIGHTS
+from cpsim.scoring import episode_scores as episode_scores
+from cpsim.scoring import metrics_from_accumulators as metrics_from_accumulators
+from cpsim.scoring import task_score as task_score
 
 # ----------------------------------------------------------------------------- constants
 #: Comfort thresholds: |a_long| (m/s^2), |a_lat| (m/s^2), |jerk| (m/s^3).
