@@ -121,8 +121,14 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
         models[name] = model
     writers = {name: _attach_memory_logger(m) for name, m in models.items()}
     n_envs = worlds * agents
-    for model in models.values():
-        model.learn(n_steps * n_envs)  # warm-up generation
+
+    def one_generation(name: str, model: Any, reset: bool) -> None:
+        # SB3 learners count slot-steps, CounterPlay-based ones B_post: ask each for exactly
+        # one rollout + one update
+        model.learn(n_steps * n_envs if name in ("stock", "fused") else 1, reset_num_timesteps=reset)
+
+    for name, model in models.items():
+        one_generation(name, model, True)  # warm-up generation
     for w in writers.values():
         w.rows.clear()
     phases = {name: _phase_timer(m) for name, m in models.items()}
@@ -132,7 +138,7 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
         for name, model in models.items():
             buffer = model.rollout_buffer
             start = time.perf_counter()
-            model.learn(n_steps * n_envs, reset_num_timesteps=False)
+            one_generation(name, model, False)
             walls[name].append(time.perf_counter() - start)
             act = getattr(buffer, "active", None)
             env = model.get_env()
