@@ -25,7 +25,15 @@ Contents (S road segments, L log rows = all agents of the pool, T = 91):
 * all logged trajectories of the pool (replay) and each agent's compressed logged path
   (valid points only, cumulative arc length, logged heading; IDM drives along it and
   beyond its end along the final heading) and IDM desired speed (max logged speed, 0 for
-  agents that move less than 1 m).
+  agents that move less than 1 m);
+* ``log_offroad``: the events kernel's off-road test of every logged move (vehicles, step
+  t-1 to t), computed once on the device; a replayed agent on its logged poses reads it
+  instead of testing (exactly the same result), which matters on WOMD scenes where most
+  agents are replayed scenery.
+
+The lane and road-edge lists are computed for the cells near each segment only (its
+bounding box grown by the radius), with the same distances as the full cell x segment
+matrix: a WOMD scene builds in seconds.
 """
 
 from __future__ import annotations
@@ -38,7 +46,7 @@ import numpy as np
 import warp as wp
 
 from cpsim.config import SimConfig
-from cpsim.scenario.datatypes import NUM_STEPS, AgentType, RoadType, Scenario, ScenarioError
+from cpsim.scenario.datatypes import RoadType, Scenario, ScenarioError
 
 #: Largest number of grid cells per scenario; larger maps get proportionally larger cells.
 MAX_CELLS_PER_SCENARIO = 40_000
@@ -72,10 +80,13 @@ class ModelArrays:
     edge_start: wp.array(dtype=wp.int32)   # (C+1,)
     edge_items: wp.array(dtype=wp.int32)
     agent_first: wp.array(dtype=wp.int32)  # (G+1,) log rows of scenario g: agent_first[g] ...
+    agent_scenario: wp.array(dtype=wp.int32)  # (L,) scenario of each log row
+    slot_count: wp.array(dtype=wp.int32)   # (G,) agents given a slot at reset (slots 0.. hold them)
     log_xy: wp.array2d(dtype=wp.vec2f)     # (L, T) m
     log_heading: wp.array2d(dtype=wp.float32)  # (L, T) rad
     log_vel: wp.array2d(dtype=wp.vec2f)    # (L, T) m/s
     log_valid: wp.array2d(dtype=wp.bool)   # (L, T)
+    log_offroad: wp.array2d(dtype=wp.bool)  # (L, T) off-road test of the logged move t-1 -> t (vehicles)
     size: wp.array(dtype=wp.vec2f)         # (L,) logged (length, width), m
     agent_type: wp.array(dtype=wp.int32)   # (L,) AgentType
     goal: wp.array(dtype=wp.vec2f)         # (L,) m
@@ -169,6 +180,78 @@ def rect_segment_distance(centres: np.ndarray, half: float, a: np.ndarray, b: np
     return np.where(hit, 0.0, dist)
 
 
+def rect_segment_distance_pairs(centres: np.ndarray, half: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`rect_segment_distance` for N (square, segment) pairs: centres, a, b (N, 2) ->
+    (N,) float64, the same operations element by element (so the same values)."""
+    c = centres.astype(np.float64)
+    a = a.astype(np.float64)
+    b = b.astype(np.float64)
+    d = b - a
+    lo_t = np.zeros(c.shape[0])
+    hi_t = np.ones_like(lo_t)
+    hit = np.ones_like(lo_t, bool)
+    for k in range(2):
+        p0 = a[:, k] - c[:, k]
+        dk = d[:, k]
+        par = np.abs(dk) < 1e-12
+        hit &= ~(par & (np.abs(p0) > half))
+        safe = np.where(par, 1.0, dk)
+        t1, t2 = (-half - p0) / safe, (half - p0) / safe
+        lo_t = np.where(par, lo_t, np.maximum(lo_t, np.minimum(t1, t2)))
+        hi_t = np.where(par, hi_t, np.minimum(hi_t, np.maximum(t1, t2)))
+    hit &= lo_t <= hi_t
+
+    def point_square(p):
+        q = np.maximum(np.abs(p - c) - half, 0.0)
+        return np.sqrt((q * q).sum(-1))
+
+    def point_segment(p):
+        ab = b - a
+        ab2 = np.maximum((ab * ab).sum(-1), 1e-12)
+        ap = p - a
+        t = np.clip((ap * ab).sum(-1) / ab2, 0.0, 1.0)
+        e = ap - t[:, None] * ab
+        return np.sqrt((e * e).sum(-1))
+
+    dist = np.minimum(point_square(a), point_square(b))
+    for sx in (-half, half):
+        for sy in (-half, half):
+            dist = np.minimum(dist, point_segment(c + np.array([sx, sy])))
+    return np.where(hit, 0.0, dist)
+
+
+def near_segment_rows(centres: np.ndarray, dims: tuple[int, int], cell: float, a: np.ndarray, b: np.ndarray,
+                      ids: np.ndarray, radius: float) -> list[np.ndarray]:
+    """Per grid cell (``centres`` (C, 2), cell id = iy * nx + ix), the segments of ``ids``
+    (ascending) whose distance to the cell's square is <= ``radius``, ascending: the lists
+    ``rect_segment_distance(centres, cell / 2, a[ids], b[ids]) <= radius`` gives, computed
+    only for the cells near each segment (its bounding box grown by radius + a cell)."""
+    nx, ny = dims
+    C = centres.shape[0]
+    if ids.size == 0:
+        return [np.zeros(0, np.int64) for _ in range(C)]
+    half = 0.5 * cell
+    sa, sb = a[ids].astype(np.float64), b[ids].astype(np.float64)
+    lo = np.minimum(sa, sb) - (radius + half)
+    hi = np.maximum(sa, sb) + (radius + half)
+    c0 = centres[0]  # centre of cell (0, 0); centres step by ``cell``
+    ix0 = np.clip(np.floor((lo[:, 0] - c0[0]) / cell).astype(np.int64) - 1, 0, nx - 1)
+    ix1 = np.clip(np.ceil((hi[:, 0] - c0[0]) / cell).astype(np.int64) + 1, 0, nx - 1)
+    iy0 = np.clip(np.floor((lo[:, 1] - c0[1]) / cell).astype(np.int64) - 1, 0, ny - 1)
+    iy1 = np.clip(np.ceil((hi[:, 1] - c0[1]) / cell).astype(np.int64) + 1, 0, ny - 1)
+    wx, wy = ix1 - ix0 + 1, iy1 - iy0 + 1
+    count = wx * wy
+    seg = np.repeat(np.arange(ids.size), count)
+    k = np.arange(seg.size) - np.repeat(np.cumsum(count) - count, count)
+    cells = (iy0[seg] + k // wx[seg]) * nx + ix0[seg] + k % wx[seg]
+    keep = rect_segment_distance_pairs(centres[cells], half, a[ids][seg], b[ids][seg]) <= radius
+    cells, seg = cells[keep], seg[keep]
+    order = np.lexsort((seg, cells))
+    cells, seg = cells[order], ids[seg[order]]
+    counts = np.bincount(cells, minlength=C)
+    return np.split(seg.astype(np.int64), np.cumsum(counts)[:-1])
+
+
 def scenario_segments(sc: Scenario, tol: float, max_len: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Simplified road segments of one scenario.
 
@@ -214,12 +297,6 @@ def _csr_from_lists(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return start, items
 
 
-def _mask_to_rows(mask: np.ndarray) -> list[np.ndarray]:
-    rows_idx, cols = np.nonzero(mask)
-    counts = np.bincount(rows_idx, minlength=mask.shape[0])
-    return np.split(cols, np.cumsum(counts)[:-1])
-
-
 # ----------------------------------------------------------------------------- the model
 @dataclass
 class GridInfo:
@@ -259,6 +336,7 @@ class Model:
         self.fingerprint = self._fingerprint(scenarios)
         self._build_host()
         self.arrays = self._upload()
+        self._replay_offroad()
 
     # ------------------------------------------------------------------ build
     @staticmethod
@@ -316,7 +394,7 @@ class Model:
         seg_offset = 0
         poly_offset = 0
         cell_offset = 0
-        for g, sc in enumerate(scs):
+        for sc in scs:
             a, b, t, p = scenario_segments(sc, cfg.road_simplify_tol, cfg.road_max_segment)
             info = self._grid_info(sc, a, b)
             nx, ny = info.dims
@@ -348,13 +426,10 @@ class Model:
                         obs_rows.append(part[r][inside[r]] + seg_offset)
                 else:
                     obs_rows.extend(np.zeros(0, np.int64) for _ in range(cc.shape[0]))
-                for ids, radius, rows in ((lane_ids, cfg.lane_radius, lane_rows),
-                                          (edge_ids, edge_margin, edge_rows)):
-                    if ids.size == 0:
-                        rows.extend(np.zeros(0, np.int64) for _ in range(cc.shape[0]))
-                        continue
-                    d = rect_segment_distance(cc, 0.5 * info.cell, a[ids], b[ids])
-                    rows.extend(ids[r] + seg_offset for r in _mask_to_rows(d <= radius))
+            # lane / road-edge candidates: near each segment only (same lists as the full
+            # cell x segment distance matrix, a fraction of its cost on large maps)
+            for ids, radius, rows in ((lane_ids, cfg.lane_radius, lane_rows), (edge_ids, edge_margin, edge_rows)):
+                rows.extend(r + seg_offset for r in near_segment_rows(centres, info.dims, info.cell, a, b, ids, radius))
             seg_a.append(a)
             seg_b.append(b)
             seg_t.append(t)
@@ -390,6 +465,8 @@ class Model:
             "lane_start": lane_start, "lane_items": lane_items,
             "edge_start": edge_start, "edge_items": edge_items,
             "agent_first": agent_first,
+            "agent_scenario": np.repeat(np.arange(G, dtype=np.int32), n_agents).astype(np.int32),
+            "slot_count": np.array([o.size for o in self.slot_order], np.int32),
             "log_xy": log_xy, "log_heading": log_heading, "log_vel": log_vel, "log_valid": log_valid,
             "size": sizes, "agent_type": types, "goal": goals, "idm_v0": v0,
             "path_xy": path_xy, "path_s": path_s, "path_h": path_h, "path_n": path_n,
@@ -476,6 +553,19 @@ class Model:
             setattr(m, name, value)
         return m
 
+    def _replay_offroad(self) -> None:
+        """``log_offroad`` (L, T): the events kernel's off-road test for every logged move of
+        every vehicle (from step t-1 to t), computed once on the device with the same Warp
+        function; replayed agents read it instead of testing (see ``agent_events``)."""
+        from cpsim import kernels as K
+
+        K.load(self.device)
+        L, T = self.host["log_valid"].shape
+        out = wp.zeros((L, T), dtype=wp.bool, device=self.device)
+        self.arrays.log_offroad = out
+        wp.launch(K.metrics.replay_offroad_kernel, dim=(L, T), inputs=[self.arrays, float(self.config.box_scale), out],
+                  device=self.device)
+
     # ------------------------------------------------------------------ info
     @property
     def num_scenarios(self) -> int:
@@ -500,5 +590,6 @@ class Model:
 
 
 __all__ = ["Model", "ModelArrays", "simplify_polyline", "point_segment_distance", "rect_segment_distance",
+           "rect_segment_distance_pairs", "near_segment_rows",
            "scenario_segments",
            "MAX_CELLS_PER_SCENARIO"]

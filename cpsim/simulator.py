@@ -14,9 +14,14 @@ See ``docs/ARCHITECTURE.md`` (Simulator) for the public contract. Layout of a st
 5. ``finish_kernel``: step counter, ``world_done``;
 6. ``observation_kernel``: the next observation.
 
-All six are recorded launches (their arguments never change). A reset is two recorded
-launches (``reset_kernel`` and the observation of the reset worlds) over staging buffers
-written in place: no per-reset allocation or upload.
+All six are recorded launches (their arguments never change). On CPU the events and
+observation kernels (and the motion / IDM kernels where their modules offer a per-world
+variant) run one thread per world looping over its slots: a Warp CPU thread copies the
+kernel's State / ModelArrays / Params arguments on entry (about 60 ns, as much as a scenery
+agent's whole events), so per world rather than per slot. CUDA keeps one thread per slot;
+both shapes run the same ``wp.func`` in the same order. A reset is two recorded launches
+(``reset_kernel`` and the observation of the reset worlds) over staging buffers written in
+place: no per-reset allocation or upload.
 
 Outputs are torch tensors that are zero-copy views of the Warp state (torch is imported
 here only, never in kernels); they are overwritten by the next ``step`` / ``reset``.
@@ -48,8 +53,7 @@ from cpsim.kernels.common import make_params
 from cpsim.model import Model
 from cpsim.observation import ObsLayout
 from cpsim.scenario.datatypes import Scenario
-from cpsim.state import (METRIC_FIELDS, REWARD_TERMS, Control, State, allocate_state, state_field_names,
-                         state_to_numpy)
+from cpsim.state import METRIC_FIELDS, REWARD_TERMS, Control, State, allocate_state, state_field_names, state_to_numpy
 
 
 @dataclass
@@ -113,14 +117,14 @@ class Simulator:
         device: "cpu" or "cuda[:N]".
         seed: seed of the NumPy generator used for scenario draws and p_train conditions.
         track_all: compute every event and metric for every agent. By default (False) only
-            *tracked* agents get them: POLICY and IDM agents, task agents (controllable at
-            reset, whatever their controller now), slot 0 (the ego), and everyone with
-            ``config.observe_all``. *Scenery* (REPLAY / STATIC agents without a task: parked
-            cars, pedestrians, replayed traffic without a goal) is tested for collisions with
-            tracked agents only (so the ego or a co-player hitting it is recorded on both
-            sides: ``first_collision_step``, ``collision_partner``, outcome, fault), for
-            off-road, goal and timeout; its lane fields, metrics accumulators and reward stay
-            0. Co-player harm (other vehicles that collided or went off-road) is therefore
+            *tracked* agents get them: POLICY and IDM agents (and those the ``stop`` rule made
+            STATIC), task agents (controllable at reset, whatever their controller now),
+            slot 0 (the ego), and everyone with ``config.observe_all``. *Scenery* (REPLAY /
+            STATIC agents without a task: parked cars, pedestrians, replayed traffic without a
+            goal) is tested for collisions with tracked agents only (so the ego or a
+            co-player hitting it is recorded on both sides: ``first_collision_step``,
+            ``collision_partner``, outcome, fault), for off-road, goal and timeout; its lane
+            fields, metrics accumulators and reward stay 0. Co-player harm (other vehicles that collided or went off-road) is therefore
             exact for everything the tracked agents do; only collisions between two scenery
             agents (both following their logs, so no agent's doing) go unrecorded. Set True
             for log statistics over every agent (``python -m cpsim.bench``'s replay sanity).
@@ -147,6 +151,12 @@ class Simulator:
         # copies the State / ModelArrays arguments on entry). Same function, same results.
         self._events_kernel = K.metrics.events_world_kernel if self._cpu else K.metrics.events_kernel
         self._obs_kernel = K.observation.observation_world_kernel if self._cpu else K.observation.observation_kernel
+        # the motion and IDM kernels get the same treatment where their modules offer a
+        # per-world variant (``dynamics_world_kernel`` / ``idm_world_kernel``)
+        world_dyn = getattr(K.dynamics, "dynamics_world_kernel", None) if self._cpu else None
+        world_idm = getattr(K.controllers, "idm_world_kernel", None) if self._cpu else None
+        self._dyn_kernel, self._dyn_per_world = (world_dyn, True) if world_dyn else (K.dynamics.dynamics_kernel, False)
+        self._idm_kernel, self._idm_per_world = (world_idm, True) if world_idm else (K.controllers.idm_kernel, False)
         self.track_all = bool(track_all)
         self._torch_device = wp.device_to_torch(wp_device)
         if wp_device.is_cuda:
@@ -183,6 +193,7 @@ class Simulator:
         self._present_idx = wp.zeros((W, A), dtype=wp.int32, device=self.device)
         self._tracked_idx = wp.zeros((W, A), dtype=wp.int32, device=self.device)
         self._roster_n = wp.zeros((W, 2), dtype=wp.int32, device=self.device)
+        self._radius = wp.zeros((W, A), dtype=wp.float32, device=self.device)
         self._all_worlds = wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=self.device)
         self._build_slot_tables()
         # reset staging: worlds, scenarios, conditions (written in place, read by recorded launches)
@@ -511,18 +522,19 @@ class Simulator:
         dim = (self.num_worlds, self.max_agents)
         s, m, p, dev = self.state, self.model.arrays, self._params, self.device
         track_all = int(self.track_all)
-        roster = [self._trig, self._prev_trig, self._present_idx, self._tracked_idx, self._roster_n]
+        roster = [self._trig, self._prev_trig, self._present_idx, self._tracked_idx, self._roster_n, self._radius]
 
         def rec(kernel, d, inputs):
             return wp.launch(kernel, dim=d, inputs=inputs, device=dev, record_cmd=True)
 
-        idm = rec(K.controllers.idm_kernel, dim, [s, m, p])
+        W = self.num_worlds
+        idm = rec(self._idm_kernel, W if self._idm_per_world else dim, [s, m, p])
         rest = [
-            rec(K.dynamics.dynamics_kernel, dim, [s, m, p, self.control.actions]),
-            rec(K.observation.prepare_kernel, self.num_worlds, [s, p, track_all, *roster]),
-            rec(self._events_kernel, self.num_worlds if self._cpu else dim, [s, m, p, track_all, *roster]),
-            rec(K.metrics.finish_kernel, self.num_worlds, [s, p, self._all_worlds, 1]),
-            rec(self._obs_kernel, self._obs_dim(self.num_worlds),
+            rec(self._dyn_kernel, W if self._dyn_per_world else dim, [s, m, p, self.control.actions]),
+            rec(K.observation.prepare_kernel, W, [s, p, track_all, *roster]),
+            rec(self._events_kernel, W if self._cpu else dim, [s, m, p, track_all, *roster]),
+            rec(K.metrics.finish_kernel, W, [s, p, self._all_worlds, 1]),
+            rec(self._obs_kernel, self._obs_dim(W),
                 [s, m, p, self._all_worlds, self._obs, self._sel_idx, self._sel_d2, self._obs_clear,
                  self._obs_filled, self._trig, 0]),
         ]

@@ -230,7 +230,7 @@ class SelfPlayVecEnv(VecEnv):
 
     def _observe(self) -> np.ndarray:
         """(num_envs, D) float32 copy of the observations, zero on inactive slots; updates the mask."""
-        self._active = _np(self.sim.policy_mask).reshape(-1).copy()
+        self._active = _np(self.sim.policy_mask).reshape(-1)  # a fresh array (NumPy on CPU)
         obs = copy_obs(self.sim.obs, (self.num_envs, self._obs_dim))
         obs[~self._active] = 0.0
         return obs

@@ -1,7 +1,11 @@
 """Events, outcomes, removal, reward and metrics of a step; per-world bookkeeping.
 
-``events_kernel`` runs after the motion kernel, over (W, A). For each agent present in the
-step it tests, against the poses after the motion:
+``events_kernel`` (over (W, A), CUDA) and ``events_world_kernel`` (over W, looping over the
+slots, CPU) run :func:`agent_events` after the motion and ``prepare_kernel``. For each
+*tracked* agent present in the step (POLICY, IDM, task agents, slot 0; see
+:func:`cpsim.kernels.observation.tracked_role`) it tests, against the poses after the motion
+(*scenery*, the other REPLAY / STATIC agents, gets collisions with tracked agents, off-road,
+goal and timeout only; ``Simulator(track_all=True)`` tracks everyone):
 
 * collision with any other present collidable agent (SAT, distance pre-filter; scaled boxes),
   the partner being the nearest colliding one, and its collision case / fault (BehaviorBench's
@@ -27,9 +31,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from cpsim.kernels.common import (COLLISION, GOAL, IDM, KERNEL_MODULE, KERNEL_OPTIONS, OFFROAD,
-                                  POLICY, RULE_IGNORE, RULE_REMOVE, RUNNING, STATIC, TIMEOUT,
-                                  VEHICLE, Params)
+from cpsim.kernels.common import (COLLISION, GOAL, IDM, KERNEL_MODULE, LAST_LOG_STEP, OFFROAD, POLICY, REPLAY,
+                                  RULE_IGNORE, RULE_REMOVE, RUNNING, STATIC, TIMEOUT, VEHICLE, Params)
 from cpsim.kernels.geometry import (box_corner_cs, boxes_overlap, collision_kind, grid_cell,
                                     kind_at_fault, lane_distance, lane_query, segment_hits_box_cs,
                                     segments_intersect, straddles_divider)
@@ -92,47 +95,80 @@ def offroad_test_cs(m: ModelArrays, g: int, p: wp.vec2f, h: float, cs: wp.vec2f,
     return hit
 
 
+@wp.func
+def replay_pose(m: ModelArrays, row: int, t: int, p: wp.vec2f, h: float, prev_p: wp.vec2f, prev_h: float) -> bool:
+    """Whether (prev_p, prev_h) -> (p, h) is exactly log row ``row``'s move from step t-1 to t."""
+    q = m.log_xy[row, t]
+    r = m.log_xy[row, t - 1]
+    return (p[0] == q[0] and p[1] == q[1] and h == m.log_heading[row, t] and prev_p[0] == r[0]
+            and prev_p[1] == r[1] and prev_h == m.log_heading[row, t - 1])
+
+
+@wp.kernel(module=KERNEL_MODULE, enable_backward=False)
+def replay_offroad_kernel(model: ModelArrays, box_scale: float, out: wp.array2d(dtype=wp.bool)):
+    """out[row, t] = the off-road test of ``agent_events`` for a vehicle moving from log step
+    t-1 to log step t of row ``row`` (False at t = 0 and for other agent types); over (L, T).
+    Built once per Model: replayed agents (most of a WOMD scene) then skip the test."""
+    row, t = wp.tid()
+    hit = bool(False)
+    if t > 0 and model.agent_type[row] == VEHICLE:
+        p = model.log_xy[row, t]
+        h = model.log_heading[row, t]
+        prev_p = model.log_xy[row, t - 1]
+        prev_h = model.log_heading[row, t - 1]
+        size = model.size[row]
+        L = size[0] * box_scale
+        Wd = size[1] * box_scale
+        hit = offroad_test_cs(model, model.agent_scenario[row], p, h, wp.vec2f(wp.cos(h), wp.sin(h)), prev_p, prev_h,
+                              wp.vec2f(wp.cos(prev_h), wp.sin(prev_h)), 0.5 * L, 0.5 * Wd)
+    out[row, t] = hit
+
+
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def events_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
                   trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                   present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
-                  roster_n: wp.array2d(dtype=wp.int32)):
+                  roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
     """:func:`agent_events` over (W, A), one thread per agent (CUDA)."""
     w, a = wp.tid()
-    agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, w, a)
+    agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius, w, a)
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def events_world_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
                         trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                         present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
-                        roster_n: wp.array2d(dtype=wp.int32)):
+                        roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
     """:func:`agent_events` over W, one thread per world looping over its slots (CPU: a CPU
     thread copies the kernel's State / ModelArrays arguments on entry, about 60 ns, so one
     entry per world instead of per slot; same order, same results as :func:`events_kernel`)."""
     w = wp.tid()
     for a in range(state.present.shape[1]):
-        agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, w, a)
+        agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius,
+                     w, a)
 
 
 @wp.func(inline=True)
 def agent_events(state: State, model: ModelArrays, params: Params, track_all: int,
                  trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                  present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
-                 roster_n: wp.array2d(dtype=wp.int32), w: int, a: int):
+                 roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32), w: int, a: int):
     """Collisions, off-road, goal, lanes, outcome, metrics, reward, removal, timeout of agent
     (w, a) (the body of ``events_kernel`` / ``events_world_kernel``).
 
-    ``trig`` / ``prev_trig`` (heading (cos, sin) now and before the motion) and the roster
-    (``present_idx``, ``tracked_idx``, ``roster_n``) come from
-    :func:`cpsim.kernels.observation.prepare_kernel`, launched just before.
+    ``trig`` / ``prev_trig`` (heading (cos, sin) now and before the motion), the roster
+    (``present_idx``, ``tracked_idx``, ``roster_n``) and the scaled box half-diagonals
+    (``radius``) come from :func:`cpsim.kernels.observation.prepare_kernel`, launched just
+    before. A REPLAY agent on its logged poses takes its off-road result from the model's
+    precomputed ``log_offroad`` table (the same test on the same inputs).
 
     Tracked agents (:func:`cpsim.kernels.observation.tracked_role`: POLICY, IDM, task agents,
-    slot 0) get everything below. Scenery (REPLAY / STATIC agents without a task) is only
-    tested for collisions with tracked agents (so a collision of the ego or a co-player with a
-    parked or replayed car is recorded on both sides, partner and fault included), off-road,
-    goal and timeout: no lane query, no metrics accumulators (they stay 0), reward 0. Nothing
-    reads those for scenery, and scenery outnumbers the tracked agents about 5 to 1 on WOMD.
+    agents stopped by the ``stop`` rule, slot 0) get everything below. Scenery (REPLAY /
+    STATIC agents without a task) is only tested for collisions with tracked agents (so a
+    collision of the ego or a co-player with a parked or replayed car is recorded on both
+    sides, partner and fault included), off-road, goal and timeout: no lane query, no metrics
+    accumulators (they stay 0), reward 0. Nothing reads those for scenery, and scenery
+    outnumbers the tracked agents about 5 to 1 on WOMD.
     """
     if state.step_count[w] >= params.episode_steps or not state.present[w, a]:
         if state.agent_index[w, a] >= 0:  # empty slots keep the zeros written at reset
@@ -141,7 +177,8 @@ def agent_events(state: State, model: ModelArrays, params: Params, track_all: in
                 state.reward_raw[w, a, k] = 0.0
                 state.reward_w[w, a, k] = 0.0
         return
-    tracked = tracked_role(state.controller[w, a], state.task_agent[w, a], a, params.observe_all, track_all)
+    tracked = tracked_role(state.controller[w, a], state.task_agent[w, a], state.finished[w, a], a,
+                           params.observe_all, track_all)
     t1 = state.step_count[w] + 1
     g = state.scenario[w]
     p = state.pos[w, a]
@@ -171,13 +208,13 @@ def agent_events(state: State, model: ModelArrays, params: Params, track_all: in
             if state.agent_type[w, j] != VEHICLE and params.collide_types == 0:
                 continue
             d = state.pos[w, j] - p
-            sj = state.size[w, j]
-            lj = sj[0] * scale
-            wj = sj[1] * scale
-            r_j = 0.5 * wp.sqrt(lj * lj + wj * wj)
+            r_j = radius[w, j]
             d2 = wp.dot(d, d)
             if d2 > (r_i + r_j) * (r_i + r_j):
                 continue
+            sj = state.size[w, j]
+            lj = sj[0] * scale
+            wj = sj[1] * scale
             if boxes_overlap(p, h, L, Wd, state.pos[w, j], state.heading[w, j], lj, wj):
                 collided = bool(True)
                 if d2 < best:
@@ -186,8 +223,14 @@ def agent_events(state: State, model: ModelArrays, params: Params, track_all: in
     # ---------------------------------------------------------------- off-road
     offroad = bool(False)
     if my_type == VEHICLE:
-        offroad = offroad_test_cs(model, g, p, h, trig[w, a], state.prev_pos[w, a], state.prev_heading[w, a],
-                                  prev_trig[w, a], 0.5 * L, 0.5 * Wd)
+        prev_p = state.prev_pos[w, a]
+        prev_h = state.prev_heading[w, a]
+        row = state.agent_row[w, a]
+        if state.controller[w, a] == REPLAY and t1 <= LAST_LOG_STEP and replay_pose(model, row, t1, p, h, prev_p,
+                                                                                    prev_h):
+            offroad = model.log_offroad[row, t1]
+        else:
+            offroad = offroad_test_cs(model, g, p, h, trig[w, a], prev_p, prev_h, prev_trig[w, a], 0.5 * L, 0.5 * Wd)
     # ---------------------------------------------------------------- goal
     gr = state.conditions[w, a, 0]
     gs = state.conditions[w, a, 1]
@@ -311,4 +354,4 @@ def finish_kernel(state: State, params: Params, worlds: wp.array(dtype=wp.int32)
 
 
 __all__ = ["events_kernel", "events_world_kernel", "agent_events", "finish_kernel", "offroad_test",
-           "offroad_test_cs"]
+           "offroad_test_cs", "replay_offroad_kernel", "replay_pose"]

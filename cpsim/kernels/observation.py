@@ -15,7 +15,7 @@ from __future__ import annotations
 import warp as wp
 
 from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
-from cpsim.kernels.common import IDM, KERNEL_MODULE, KERNEL_OPTIONS, POLICY, VEHICLE, Params
+from cpsim.kernels.common import IDM, KERNEL_MODULE, POLICY, STATIC, VEHICLE, Params
 from cpsim.kernels.geometry import grid_cell, to_local
 from cpsim.model import ModelArrays
 from cpsim.state import State
@@ -27,23 +27,27 @@ ROAD_EDGE = wp.constant(2)
 
 
 @wp.func
-def tracked_role(ctrl: int, task: bool, a: int, observe_all: int, track_all: int) -> bool:
+def tracked_role(ctrl: int, task: bool, finished: bool, a: int, observe_all: int, track_all: int) -> bool:
     """Whether the agent in slot ``a`` is *tracked*: it gets every event and metric of a step
     (collisions with everyone, lane, metrics accumulators, reward). Tracked are POLICY and IDM
-    agents, task agents (controllable at reset, whatever their controller now), slot 0 (the
-    ego) and, with ``observe_all`` or ``track_all``, everyone. The others are *scenery*
-    (REPLAY / STATIC agents without a task): see ``events_kernel``."""
-    return ctrl == POLICY or ctrl == IDM or task or a == 0 or observe_all != 0 or track_all != 0
+    agents, agents the ``stop`` rule turned STATIC (STATIC and ``finished``), task agents
+    (controllable at reset, whatever their controller now), slot 0 (the ego) and, with
+    ``observe_all`` or ``track_all``, everyone. The others are *scenery* (REPLAY / STATIC
+    agents without a task): see ``events_kernel``."""
+    return (ctrl == POLICY or ctrl == IDM or task or a == 0 or (ctrl == STATIC and finished)
+            or observe_all != 0 or track_all != 0)
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2d(dtype=wp.vec2f),
                    prev_trig: wp.array2d(dtype=wp.vec2f), present_idx: wp.array2d(dtype=wp.int32),
-                   tracked_idx: wp.array2d(dtype=wp.int32), roster_n: wp.array2d(dtype=wp.int32)):
+                   tracked_idx: wp.array2d(dtype=wp.int32), roster_n: wp.array2d(dtype=wp.int32),
+                   radius: wp.array2d(dtype=wp.float32)):
     """Per world (over W), after the motion: for every present agent, ``prev_trig`` <- ``trig``
-    (the (cos, sin) of its heading before the motion) and ``trig`` <- (cos, sin) of its heading
-    now; ``present_idx[w, :n]`` lists the present slots and ``tracked_idx[w, :m]`` the present
-    tracked ones (:func:`tracked_role`), both in slot order; ``roster_n[w]`` = (n, m)."""
+    (the (cos, sin) of its heading before the motion), ``trig`` <- (cos, sin) of its heading
+    now and ``radius`` <- the half-diagonal of its box scaled by ``box_scale`` (the collision
+    pre-filter); ``present_idx[w, :n]`` lists the present slots and ``tracked_idx[w, :m]`` the
+    present tracked ones (:func:`tracked_role`), both in slot order; ``roster_n[w]`` = (n, m)."""
     w = wp.tid()
     n = int(0)
     m = int(0)
@@ -52,9 +56,14 @@ def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2
             prev_trig[w, a] = trig[w, a]
             h = state.heading[w, a]
             trig[w, a] = wp.vec2f(wp.cos(h), wp.sin(h))
+            size = state.size[w, a]
+            length = size[0] * params.box_scale
+            width = size[1] * params.box_scale
+            radius[w, a] = 0.5 * wp.sqrt(length * length + width * width)
             present_idx[w, n] = a
             n += 1
-            if tracked_role(state.controller[w, a], state.task_agent[w, a], a, params.observe_all, track_all):
+            if tracked_role(state.controller[w, a], state.task_agent[w, a], state.finished[w, a], a,
+                            params.observe_all, track_all):
                 tracked_idx[w, m] = a
                 m += 1
     roster_n[w, 0] = n
@@ -184,7 +193,8 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
     n = int(0)
     if K > 0:
         R2 = params.partner_radius * params.partner_radius
-        num = state.alive.shape[1]
+        # a reset fills slots 0 .. slot_count - 1; the slots after them stay empty
+        num = wp.min(state.alive.shape[1], model.slot_count[state.scenario[w]])
         for j in range(num):
             if j == a or not state.alive[w, j]:
                 continue

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from cpsim.kernels.common import KERNEL_MODULE, KERNEL_OPTIONS, NO_CONTROLLER, POLICY, RUNNING, STATIC, Params
+from cpsim.kernels.common import KERNEL_MODULE, NO_CONTROLLER, POLICY, RUNNING, STATIC, Params
 from cpsim.kernels.dynamics import signed_speed
 from cpsim.kernels.geometry import lane_query
 from cpsim.kernels.observation import tracked_role
@@ -172,7 +172,7 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
     has_lane = bool(False)
     err = float(0.0)
     offset = float(0.0)
-    if occupied and tracked_role(ctrl, task, a, params.observe_all, track_all):
+    if occupied and tracked_role(ctrl, task, False, a, params.observe_all, track_all):
         sid, ld, off, e = lane_query(model, g, pos, heading, params.lane_radius)
         if sid >= 0:
             has_lane = bool(True)

@@ -1,0 +1,52 @@
+"""The model's lane / road-edge candidate lists (built near each segment) equal the lists of
+the full cell x segment distance matrix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cpsim.config import SimConfig
+from cpsim.model import Model, near_segment_rows, rect_segment_distance, scenario_segments
+from cpsim.scenario import pool
+from cpsim.scenario.datatypes import RoadType
+
+WOMD_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "womd"
+
+
+def dense_rows(centres, cell, a, b, ids, radius):
+    if ids.size == 0:
+        return [np.zeros(0, np.int64) for _ in range(centres.shape[0])]
+    d = rect_segment_distance(centres, 0.5 * cell, a[ids], b[ids]) <= radius
+    return [ids[np.flatnonzero(row)] for row in d]
+
+
+def scenes():
+    out = list(pool(4, 0))
+    if any(WOMD_DIR.glob("*.json")):
+        from cpsim.scenario import load
+
+        out += [load(p) for p in sorted(WOMD_DIR.glob("*.json"))]
+    return out
+
+
+@pytest.mark.parametrize("dynamics", ["jerk", "classic"])
+def test_near_segment_rows_equal_dense_lists(dynamics):
+    cfg = SimConfig(dynamics=dynamics)
+    scs = scenes()
+    model = Model(scs[:1], cfg)
+    for sc in scs:
+        a, b, t, _ = scenario_segments(sc, cfg.road_simplify_tol, cfg.road_max_segment)
+        info = model._grid_info(sc, a, b)
+        nx, ny = info.dims
+        ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
+        centres = info.origin + (np.stack([ix.ravel(), iy.ravel()], 1) + 0.5) * info.cell
+        for kind, radius in ((RoadType.LANE, cfg.lane_radius), (RoadType.ROAD_EDGE, model.edge_margin)):
+            ids = np.flatnonzero(t == kind)
+            fast = near_segment_rows(centres, info.dims, info.cell, a, b, ids, radius)
+            slow = dense_rows(centres, info.cell, a, b, ids, radius)
+            assert len(fast) == len(slow) == centres.shape[0]
+            assert all(np.array_equal(f, s) for f, s in zip(fast, slow)), (sc.id, kind)
+            assert sum(f.size for f in fast) > 0
