@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from cpsim.kernels.common import IDM, KERNEL_MODULE, KERNEL_OPTIONS, Params
+from cpsim.kernels.common import IDM, KERNEL_MODULE, Params
 from cpsim.kernels.geometry import cross2, wrap_angle
 from cpsim.model import ModelArrays
 from cpsim.state import State

@@ -59,8 +59,7 @@ import numpy as np
 import warp as wp
 
 from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER, JERK_LAT, JERK_LONG
-from cpsim.kernels.common import (IDM, KERNEL_MODULE, KERNEL_OPTIONS, LAST_LOG_STEP, POLICY,
-                                  REPLAY, STATIC, Params)
+from cpsim.kernels.common import IDM, KERNEL_MODULE, LAST_LOG_STEP, POLICY, REPLAY, STATIC, Params
 from cpsim.kernels.controllers import path_pose
 from cpsim.kernels.geometry import wrap_angle
 from cpsim.model import ModelArrays

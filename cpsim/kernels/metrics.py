@@ -31,11 +31,35 @@ from __future__ import annotations
 
 import warp as wp
 
-from cpsim.kernels.common import (COLLISION, GOAL, IDM, KERNEL_MODULE, LAST_LOG_STEP, OFFROAD, POLICY, REPLAY,
-                                  RULE_IGNORE, RULE_REMOVE, RUNNING, STATIC, TIMEOUT, VEHICLE, Params)
-from cpsim.kernels.geometry import (box_corner_cs, boxes_overlap, collision_kind, grid_cell,
-                                    kind_at_fault, lane_distance, lane_query, segment_hits_box_cs,
-                                    segments_intersect, straddles_divider)
+from cpsim.kernels.common import (
+    COLLISION,
+    GOAL,
+    IDM,
+    KERNEL_MODULE,
+    LAST_LOG_STEP,
+    OFFROAD,
+    POLICY,
+    REPLAY,
+    RULE_IGNORE,
+    RULE_REMOVE,
+    RUNNING,
+    STATIC,
+    TIMEOUT,
+    VEHICLE,
+    Params,
+)
+from cpsim.kernels.geometry import (
+    box_corner_cs,
+    boxes_overlap,
+    collision_kind,
+    grid_cell,
+    kind_at_fault,
+    lane_distance,
+    lane_query,
+    segment_hits_box_cs,
+    segments_intersect,
+    straddles_divider,
+)
 from cpsim.kernels.observation import tracked_role
 from cpsim.kernels.reward import comfort_violations, write_reward
 from cpsim.model import ModelArrays
