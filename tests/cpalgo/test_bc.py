@@ -100,3 +100,106 @@ def test_collect_labels_reproduce_the_logs():
     assert np.median(track.error_m) < 0.3
     with pytest.raises(ValueError, match="mode"):
         collect(scenarios, mode="dagger")
+
+
+# ---------------------------------------------------------------- DAgger (tiny settings)
+class _Constant:
+    """A stand-in learner that always takes one action (hard braking when 0)."""
+
+    def __init__(self, action: int):
+        self.action = action
+        self.calls = 0
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True):
+        self.calls += 1
+        return np.full(len(obs), self.action, np.int64), None
+
+
+@pytest.fixture(scope="module")
+def tiny_pool():
+    pytest.importorskip("cpsim.simulator")
+    from cpsim.scenario import train_pool
+
+    return list(train_pool(3, 0))
+
+
+def test_rollouts_relabel_the_learner_states_with_the_tracking_expert(tiny_pool):
+    from cpalgo.bc import traffic_rollouts
+    from cpsim.config import JERK_LAT, JERK_LONG
+
+    kw = dict(num_worlds=3, max_agents=16, seed=0, ego_replay=0.0)
+    expert, s_e = traffic_rollouts(tiny_pool, None, 1.0, **kw)
+    n_task = sum(int(s.controllable.sum()) for s in tiny_pool)
+    assert (s_e.learner_agents, s_e.expert_agents) == (0, n_task)
+    assert s_e.expert_harm_rate <= 0.2  # the expert tracks collision-free logs
+    assert expert.obs.dtype == np.float16 and expert.obs.shape[0] == expert.actions.size == s_e.samples
+    assert np.unique(expert.actions).size >= 3
+    # the targets head's rule turns the expert's target accelerations back into its actions
+    from cpalgo.bc import targets_to_actions
+
+    rebuilt = targets_to_actions(th.as_tensor(expert.targets), th.as_tensor(expert.obs.astype(np.float32)))
+    assert (rebuilt.numpy() == expert.actions).mean() > 0.95
+    # a learner that only brakes: every task vehicle is its own, the states it visits are
+    # recorded, and their labels are the expert's (mostly "speed back up"), not its action
+    brake = int(np.argmin(JERK_LONG)) * JERK_LAT.size + int(np.argmin(np.abs(JERK_LAT)))
+    learner = _Constant(brake)
+    data, s_l = traffic_rollouts(tiny_pool, learner, 0.0, **kw)
+    assert learner.calls > 0 and (s_l.learner_agents, s_l.expert_agents) == (n_task, 0)
+    assert (data.actions != brake).mean() > 0.5
+    speed = np.abs(data.obs[:, 0].astype(np.float32)).mean()
+    assert speed < np.abs(expert.obs[:, 0].astype(np.float32)).mean()  # off the expert's states
+    assert set(np.unique(data.scenario)) <= {0, 1, 2}
+    # keep subsamples; slot 0 replaying its log is no task vehicle of the learner
+    sub, s_k = traffic_rollouts(tiny_pool, learner, 0.0, **{**kw, "ego_replay": 1.0}, keep=0.3)
+    assert s_k.learner_agents <= n_task - len(tiny_pool) and sub.actions.size < 0.6 * data.actions.size
+    with pytest.raises(ValueError, match="model"):
+        traffic_rollouts(tiny_pool, None, 0.5, **kw)
+
+
+def test_dagger_aggregates_rounds_and_checkpoints(tiny_pool, tmp_path):
+    from cpalgo.bc import BCPolicy, DaggerConfig, aggregate, dagger
+
+    a = BCData(np.ones((2, 3), np.float16), np.array([1, 2]), np.zeros(2, np.float32), np.array([0, 1]))
+    b = BCData(np.zeros((1, 3), np.float16), np.array([3]), np.zeros(1, np.float32), np.array([2]))
+    agg = aggregate([a, b])
+    assert agg.obs.shape == (3, 3) and agg.actions.tolist() == [1, 2, 3]
+    cfg = DaggerConfig(betas=(1.0, 0.0), first_epochs=1, round_epochs=1, num_worlds=3, max_agents=16, noise=0.1)
+    model, history = dagger(tiny_pool, cfg, TrainConfig(hidden=(16,), val_fraction=0.0), checkpoint=tmp_path / "d.pt")
+    assert [h["round"] for h in history] == [0, 1] and [h["beta"] for h in history] == [1.0, 0.0]
+    assert history[0]["learner_agents"] == 0 and history[1]["expert_agents"] == 0
+    assert history[1]["aggregate_samples"] == history[0]["samples"] + history[1]["samples"]
+    saved = BCPolicy.load(tmp_path / "d.pt")
+    assert saved.meta["dagger_round"] == 1 and len(saved.meta["dagger"]) == 2
+    with pytest.raises(ValueError, match="betas"):
+        DaggerConfig(betas=(0.5, 0.0))
+
+
+def test_targets_head_regresses_and_acts_through_the_expert_rule(tmp_path):
+    from cpalgo.bc import TARGET_SCALE, targets_to_actions
+
+    data = _synthetic(1500, d=24)
+    data.obs[:, 1:3] = 0.0  # own accelerations 0: the rule's choice depends on the targets only
+    data.targets = np.stack([4.0 * data.obs[:, 5], 3.0 * data.obs[:, 6]], -1).astype(np.float32)
+    data.actions = targets_to_actions(th.as_tensor(data.targets), th.as_tensor(data.obs)).numpy()
+    model, m = train(data, 12, (8, 12), TrainConfig(epochs=20, hidden=(64,), batch_size=64, lr=5e-3, head="targets"))
+    assert model.head == "targets" and m["val_accuracy"] > 0.8
+    with th.no_grad():
+        out = model.raw(th.as_tensor(data.obs[:300])) * th.as_tensor(TARGET_SCALE)
+    assert np.abs(out.numpy() - data.targets[:300]).mean() < 0.3
+    # forward gives action logits whatever the head (SPICED's reference reads them)
+    with th.no_grad():
+        logits = model(th.as_tensor(data.obs[:300]))
+    assert logits.shape == (300, 12)
+    np.testing.assert_array_equal(logits.argmax(-1).numpy(), model.predict(data.obs[:300])[0])
+    # classic dynamics: the nearest acceleration command, straight ahead for no lateral target
+    from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER
+
+    obs = np.zeros((2, 24), np.float32)
+    obs[:, 0], obs[:, 4] = 0.5, 0.45
+    act = targets_to_actions(th.tensor([[1.2, 0.0], [-3.9, 0.0]]), th.as_tensor(obs), "classic").numpy()
+    assert [CLASSIC_ACCEL[a // CLASSIC_STEER.size] for a in act] == [CLASSIC_ACCEL[4], CLASSIC_ACCEL[0]]
+    assert all(CLASSIC_STEER[a % CLASSIC_STEER.size] == 0.0 for a in act)
+    loaded = BCPolicy.load(model.save(tmp_path / "t.pt"))
+    assert loaded.head == "targets" and (loaded.predict(data.obs[:300])[0] == model.predict(data.obs[:300])[0]).mean() > 0.97
+    with pytest.raises(ValueError, match="targets"):
+        train(BCData(data.obs, data.actions, data.error_m, data.scenario), 12, None, TrainConfig(head="targets"))
