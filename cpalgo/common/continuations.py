@@ -54,6 +54,7 @@ from sb3_contrib.common.recurrent.type_aliases import RNNStates
 
 from cpalgo.common.hooked_train import HookedPPO, check_number
 from cpalgo.common.policy_utils import actor_logits, inverse_cdf_sample, policy_step_logits, put_states, take_states
+from cpalgo.counterplay.branches import GrowingSimulator, branch_simulator_factory
 from cpalgo.methods.base import base_vec_env
 
 __all__ = [
@@ -284,20 +285,7 @@ class GroupResult:
 ProxyFn = Callable[[np.ndarray, int], np.ndarray]
 
 
-def branch_simulator_factory(source: Any) -> Callable[[int], Any]:
-    """``num_worlds -> Simulator`` on the main simulator's pool, config and device
-    (sharing its static Model: no second road grid)."""
-    def make(num_worlds: int) -> Any:
-        from cpsim.simulator import Simulator
-
-        pool = getattr(source, "model", None) or source.scenarios
-        return Simulator(pool, num_worlds=int(num_worlds), max_agents=int(source.max_agents),
-                         config=source.config, device=str(source.device))
-
-    return make
-
-
-class ContinuationRunner:
+class ContinuationRunner(GrowingSimulator):
     """Runs :class:`GroupJob` lists batched on a second simulator (see module docstring).
 
     Args:
@@ -319,16 +307,6 @@ class ContinuationRunner:
         self.record = bool(record)
         self._sim: Any = None
         self._capacity = 0
-
-    def simulator(self, num_worlds: int) -> Any:
-        """A branch simulator with at least ``num_worlds`` worlds (grown by doubling)."""
-        if self._sim is None or self._capacity < num_worlds:
-            capacity = max(1, self._capacity)
-            while capacity < num_worlds:
-                capacity *= 2
-            self._sim = self.make_simulator(capacity)
-            self._capacity = capacity
-        return self._sim
 
     @th.no_grad()
     def run(self, jobs: Sequence[GroupJob]) -> list[GroupResult]:

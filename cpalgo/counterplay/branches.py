@@ -27,7 +27,7 @@ from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits, p
 from cpalgo.counterplay.search import BranchOutcome
 from cpsim.config import Outcome
 
-__all__ = ["BranchJob", "BranchResult", "BranchRunner"]
+__all__ = ["BranchJob", "BranchResult", "BranchRunner", "GrowingSimulator", "branch_simulator_factory"]
 
 OUTCOME_GOAL = int(Outcome.GOAL)
 
@@ -89,7 +89,38 @@ class BranchResult:
     xy: np.ndarray | None = None
 
 
-class BranchRunner:
+def branch_simulator_factory(source: Any) -> Callable[[int], Any]:
+    """``num_worlds -> Simulator`` on the main simulator's pool, config and device, sharing its
+    static Model (no second road grid or pool build)."""
+    def make(num_worlds: int) -> Any:
+        from cpsim.simulator import Simulator
+
+        pool = getattr(source, "model", None) or source.scenarios
+        return Simulator(pool, num_worlds=int(num_worlds), max_agents=int(source.max_agents),
+                         config=source.config, device=str(source.device))
+
+    return make
+
+
+class GrowingSimulator:
+    """Owns a second simulator built by ``self.make_simulator`` and grown by doubling."""
+
+    make_simulator: Callable[[int], Any]
+    _sim: Any = None
+    _capacity: int = 0
+
+    def simulator(self, num_worlds: int) -> Any:
+        """A branch simulator with at least ``num_worlds`` worlds (grown by doubling)."""
+        if self._sim is None or self._capacity < num_worlds:
+            capacity = max(1, self._capacity)
+            while capacity < num_worlds:
+                capacity *= 2
+            self._sim = self.make_simulator(capacity)
+            self._capacity = capacity
+        return self._sim
+
+
+class BranchRunner(GrowingSimulator):
     """Runs :class:`BranchJob` lists on a second simulator (see module docstring).
 
     Args:
@@ -113,17 +144,6 @@ class BranchRunner:
         self.generator = generator if generator is not None else th.Generator().manual_seed(0)
         self._sim: Any = None
         self._capacity = 0
-
-    # ------------------------------------------------------------------ simulator
-    def simulator(self, num_worlds: int) -> Any:
-        """A branch simulator with at least ``num_worlds`` worlds (grown by doubling)."""
-        if self._sim is None or self._capacity < num_worlds:
-            capacity = max(1, self._capacity)
-            while capacity < num_worlds:
-                capacity *= 2
-            self._sim = self.make_simulator(capacity)
-            self._capacity = capacity
-        return self._sim
 
     # ------------------------------------------------------------------ run
     @th.no_grad()

@@ -29,7 +29,7 @@ import torch as th
 from sb3_contrib.common.recurrent.type_aliases import RNNStates
 
 from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits, put_states, take_states
-from cpalgo.counterplay.branches import BranchJob, BranchResult, BranchRunner
+from cpalgo.counterplay.branches import BranchJob, BranchResult, BranchRunner, branch_simulator_factory
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import Teacher
 from cpalgo.counterplay.roots import RootStore, SearchRequest
@@ -233,7 +233,7 @@ class SearchDriver:
             lstm_layers=lstm.num_layers, lstm_hidden=lstm.hidden_size, device=self.device,
         )
         self._sim = sim
-        self.runner = BranchRunner(_branch_simulator_factory(sim), policy, obs_transform, self._branch_draws)
+        self.runner = BranchRunner(branch_simulator_factory(sim), policy, obs_transform, self._branch_draws)
 
     @property
     def sim(self) -> Simulator | None:
@@ -525,14 +525,3 @@ class SearchDriver:
 
 
 # ---------------------------------------------------------------------- helpers
-def _branch_simulator_factory(source: Simulator) -> Callable[[int], Simulator]:
-    """``num_worlds -> Simulator`` sharing the main simulator's static Model (no second
-    road grid or pool build)."""
-    def make(num_worlds: int) -> Simulator:
-        from cpsim.simulator import Simulator
-
-        pool = getattr(source, "model", None) or source.scenarios
-        return Simulator(pool, num_worlds=int(num_worlds), max_agents=int(source.max_agents),
-                         config=source.config, device=str(source.device))
-
-    return make
