@@ -55,6 +55,7 @@ import numpy as np
 import torch as th
 from torch import nn
 
+from cpsim.arrays import to_numpy as _np
 from cpsim.atomic import atomic_path
 
 FORMAT_VERSION = 1
@@ -246,10 +247,6 @@ class BCData:
     error_m: np.ndarray
     scenario: np.ndarray
     targets: np.ndarray | None = None
-
-
-def _np(x: Any) -> np.ndarray:
-    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
 
 
 def _padded_logs(scenarios: Sequence[Any]) -> tuple[np.ndarray, ...]:

@@ -29,6 +29,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from cpsim.arrays import to_numpy as _np
 from cpsim.atomic import atomic_path
 from cpsim.scenario.datatypes import RoadType, Scenario
 
@@ -481,13 +482,6 @@ class TopDownRenderer:
             present=present, goal_xy=goals,
             ego=ego_slot if present[ego_slot] else None, trail=trail,
         )
-
-
-def _np(x: Any) -> np.ndarray:
-    """Torch tensor (any device) or array -> NumPy array."""
-    if hasattr(x, "detach"):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
 
 
 _DEFAULT_RENDERERS: dict[tuple, TopDownRenderer] = {}

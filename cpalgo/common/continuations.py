@@ -56,6 +56,7 @@ from cpalgo.common.hooked_train import HookedPPO, check_number
 from cpalgo.common.policy_utils import actor_logits, inverse_cdf_sample, policy_step_logits, put_states, take_states
 from cpalgo.counterplay.branches import GrowingSimulator, branch_simulator_factory
 from cpalgo.methods.base import base_vec_env
+from cpsim.arrays import to_numpy as _np
 
 __all__ = [
     "TRIGGER_MODES", "TRAFFIC_MODES", "action_grid", "neutral_action", "interaction_trigger",
@@ -77,10 +78,6 @@ _POLICY, _REPLAY = 0, 1
 TTC_RANGE_M = 50.0
 #: closing speed below which there is no time to collision (m/s)
 TTC_MIN_CLOSING = 0.1
-
-
-def _np(x: Any) -> np.ndarray:
-    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
 
 
 # ============================================================================ actions

@@ -34,6 +34,7 @@ from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import Teacher
 from cpalgo.counterplay.roots import RootStore, SearchRequest
 from cpalgo.counterplay.search import BACKTRACK_MODES, SELECTION_MODES, admit, choose_teacher, select_root, verify
+from cpsim.arrays import to_numpy as _to_numpy
 from cpsim.conditions import PANEL, PROFILE_ALIASES, PROFILES, STYLE_MASK
 from cpsim.config import Outcome
 
@@ -62,10 +63,6 @@ def outcome_code(value: Any) -> int:
         return int(value)
     except (TypeError, ValueError):
         return -1
-
-
-def _to_numpy(x: Any) -> np.ndarray:
-    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
 
 
 @dataclass(frozen=True)

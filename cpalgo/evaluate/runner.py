@@ -42,6 +42,7 @@ import numpy as np
 
 from cpalgo.evaluate import metrics as M
 from cpalgo.recipes import resolve_path, shipped_path
+from cpsim.arrays import to_numpy as _np
 from cpsim.conditions import deployment_condition
 from cpsim.config import Controller, Outcome
 from cpsim.scenario.datatypes import AgentType
@@ -374,10 +375,6 @@ class EvalResult:
 
 
 # ============================================================================ evaluator
-def _np(x: Any) -> np.ndarray:
-    if hasattr(x, "detach"):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -51,12 +51,9 @@ from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits
 from cpalgo.counterplay.algorithm import CounterPlay
 from cpalgo.counterplay.driver import FAILURE_OUTCOMES, outcome_code
 from cpalgo.methods.base import EqualBudgetMixin, base_vec_env, frozen_policy_copy
+from cpsim.arrays import to_numpy as _np
 
 __all__ = ["BoundaryRolloutBuffer", "RewindPPO", "OpponentPPO"]
-
-
-def _np(x: Any) -> np.ndarray:
-    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
 
 
 # ============================================================================ buffer

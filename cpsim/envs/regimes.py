@@ -45,6 +45,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from cpsim.arrays import to_numpy as _to_numpy
 from cpsim.conditions import NUM_CONDITION_FIELDS, profile, resolve_condition
 
 REGIMES: tuple[str, ...] = ("replay", "idm", "static", "policy", "aggressive", "normal", "cautious", "mix")
@@ -73,12 +74,6 @@ def resolve_regime(name: str) -> str:
             f"unknown regime {name!r}; accepted: {list(REGIMES) + sorted(REGIME_ALIASES)}"
         )
     return key
-
-
-def _to_numpy(x: Any) -> np.ndarray:
-    if hasattr(x, "detach"):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
 
 
 #: SB3 algorithms :func:`load_policy` tries, in order (``module:Class``).

@@ -11,6 +11,7 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
+from cpsim.arrays import to_numpy as _np
 from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions
 from cpsim.scoring import episode_scores
 
@@ -20,13 +21,6 @@ CONDITION_MODES = ("train",)
 DEFAULT_POOL_SIZE = 16
 #: episode metrics in the info of an agent's last step (:func:`cpsim.scoring.episode_scores`)
 _SCORE_KEYS = ("at_fault_collision", "comfort", "lane_align", "lane_center", "score")
-
-
-def _np(x: Any) -> np.ndarray:
-    """Torch tensor or array -> NumPy (a view when possible; callers copy what they keep)."""
-    if hasattr(x, "detach"):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
 
 
 @functools.lru_cache(maxsize=8)
