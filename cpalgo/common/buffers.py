@@ -108,13 +108,7 @@ class _ActiveMaskMixin:
         index = np.flatnonzero(active)
         if index.size == 0:
             return
-        # a sequence starts at an episode start, at each env's first step, and after an
-        # inactive gap (the memory stored there belongs to that step, not to the gap)
-        env_first = np.zeros((self.n_envs, self.buffer_size), bool)  # type: ignore[attr-defined]
-        env_first[:, 0] = True
-        after_gap = np.ones_like(active)
-        after_gap[1:] = ~active[:-1]
-        seq_start = (self.episode_starts.reshape(-1) > 0) | env_first.reshape(-1) | after_gap  # type: ignore[attr-defined]
+        seq_start = self._sequence_starts(active)
         if batch_size is None:
             batch_size = index.size
         # the parent's shuffle: keep the sequence order but rotate at a random point
@@ -123,6 +117,16 @@ class _ActiveMaskMixin:
         for start in range(0, order.size, int(batch_size)):
             batch_inds = order[start : start + int(batch_size)]
             yield self._active_samples(batch_inds, seq_start[batch_inds])
+
+    def _sequence_starts(self, active: np.ndarray) -> np.ndarray:
+        """(n_envs * n_steps,) bool over the flattened buffer: a sequence starts at an episode
+        start, at each env's first step, and after an inactive gap (the memory stored there
+        belongs to that step, not to the gap). Subclasses add their own cuts."""
+        env_first = np.zeros((self.n_envs, self.buffer_size), bool)  # type: ignore[attr-defined]
+        env_first[:, 0] = True
+        after_gap = np.ones_like(active)
+        after_gap[1:] = ~active[:-1]
+        return (self.episode_starts.reshape(-1) > 0) | env_first.reshape(-1) | after_gap  # type: ignore[attr-defined]
 
     def _flatten_fields(self) -> None:
         """The parent's one-time (n_steps, n_envs, ...) -> (n_envs * n_steps, ...) flatten."""

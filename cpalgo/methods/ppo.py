@@ -39,7 +39,7 @@ simulated agent transition does.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Generator
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
@@ -84,31 +84,13 @@ class BoundaryRolloutBuffer(MaskedRecurrentRolloutBuffer):
         # the parent's own sampler does not know boundaries: any boundary takes the active path
         return bool(self.active_only) and (not bool(np.all(self.active)) or bool(np.any(self.boundary)))
 
-    def get(self, batch_size: int | None = None) -> Generator[Any, None, None]:
-        if not self._uses_active_path():
-            yield from super().get(batch_size)
-            return
-        assert self.full, "Rollout buffer must be full before sampling from it"
+    def _flatten_fields(self) -> None:
         if not self.generator_ready:
             self.boundary = self.swap_and_flatten(self.boundary)
-        self._flatten_fields()
-        active = self.active.reshape(-1) > 0
-        index = np.flatnonzero(active)
-        if index.size == 0:
-            return
-        env_first = np.zeros((self.n_envs, self.buffer_size), bool)
-        env_first[:, 0] = True
-        after_gap = np.ones_like(active)
-        after_gap[1:] = ~active[:-1]
-        seq_start = ((self.episode_starts.reshape(-1) > 0) | env_first.reshape(-1) | after_gap
-                     | (self.boundary.reshape(-1) > 0))
-        if batch_size is None:
-            batch_size = index.size
-        split = np.random.randint(index.size)
-        order = np.concatenate((index[split:], index[:split]))
-        for start in range(0, order.size, int(batch_size)):
-            batch_inds = order[start : start + int(batch_size)]
-            yield self._active_samples(batch_inds, seq_start[batch_inds])
+        super()._flatten_fields()
+
+    def _sequence_starts(self, active: np.ndarray) -> np.ndarray:
+        return super()._sequence_starts(active) | (self.boundary.reshape(-1) > 0)
 
 
 # ============================================================================ PPO-Rewind
