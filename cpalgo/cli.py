@@ -111,6 +111,12 @@ def _existing_file(text: str) -> str:
     return path
 
 
+def _existing_dir(text: str) -> str:
+    if not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"no such folder {text!r}")
+    return text
+
+
 def _recipe_file(text: str) -> str:
     """A zoo YAML recipe that parses (the path, resolved)."""
     try:
@@ -214,7 +220,19 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
 
     recipe = load_recipe(args.config)
-    env = _make_env(recipe, args.seed)
+    overrides = {}
+    if args.add_womd:  # the recipe's procedural pool plus real scenes
+        from cpsim import scenario as scen_mod
+        from cpsim.envs.selfplay import resolve_scenarios
+
+        kw = recipe.env_kwargs
+        pool = resolve_scenarios(family=kw.get("family"), num_scenarios=kw.get("num_scenarios"), seed=args.seed)
+        try:
+            real, _report = scen_mod.load_dir(args.add_womd)
+        except Exception as exc:  # noqa: BLE001 - reported with the folder name
+            raise UsageError(f"--add-womd: {args.add_womd}: {exc}") from None
+        overrides = {"scenarios": pool + list(real), "family": None, "num_scenarios": None}
+    env = _make_env(recipe, args.seed, **overrides)
     steps = args.timesteps or recipe.n_timesteps
     model = RecurrentPPO(recipe.policy, env, seed=args.seed, verbose=args.verbose,
                          tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
@@ -225,13 +243,14 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
             raise UsageError(f"--init: {args.init} does not match the recipe's policy ({exc})") from None
     imitation = []
     t0 = time.perf_counter()
-    if args.imitate:  # DAgger warm start from the tracking expert before PPO
+    if args.imitate:  # DAgger warm start from an expert teacher before PPO
         from cpalgo.pretrain import ImitationConfig, imitate_expert
 
         imitation = imitate_expert(model, config=ImitationConfig(iterations=args.imitate,
                                                                  num_worlds=args.imitate_worlds,
                                                                  epochs=args.imitate_epochs,
-                                                                 beta=args.imitate_beta),
+                                                                 beta=args.imitate_beta,
+                                                                 teacher=args.teacher),
                                    seed=args.seed)
         if args.imitate_only:
             steps = 0
@@ -428,11 +447,11 @@ def cmd_searches(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- outcomes
 def cmd_outcomes(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
-    if args.model == "expert":  # the tracking expert, the imitation teacher
+    if args.model == "expert":  # an imitation teacher
         from cpalgo.selfplay_eval import expert_outcomes
 
         rates = expert_outcomes(_held_out(args.tasks), condition=args.condition, max_agents=args.max_agents,
-                                config={"dynamics": args.dynamics})
+                                config={"dynamics": args.dynamics}, teacher=args.teacher)
     else:
         from cpalgo.evaluate.runner import load_model
 
@@ -444,7 +463,8 @@ def cmd_outcomes(args: argparse.Namespace) -> int:
         rates = _outcomes(model, args.tasks, args.max_agents, args.condition)
     print(rates)
     out = Path(args.out)
-    _write_json(out, {"model": args.model if args.model == "expert" else path, "condition": args.condition,
+    model_name = f"expert ({args.teacher})" if args.model == "expert" else path
+    _write_json(out, {"model": model_name, "condition": args.condition,
                       "tasks": args.tasks, "max_agents": args.max_agents, "outcomes": rates.as_dict()})
     print(f"written to {out}")
     return 0
@@ -523,7 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ta = add("train-anchor", "train the reward-conditioned self-play anchor",
              "Train the reward-conditioned self-play anchor (RecurrentPPO), optionally after a DAgger "
-             "warm start that imitates cpsim.expert.TrackingExpert.")
+             "warm start that imitates an expert teacher (cpsim.expert).")
     common(ta)
     ta.add_argument("--config", type=_recipe_file, default=DEFAULT_ANCHOR_CONFIG, metavar="YAML",
                     help="zoo YAML recipe")
@@ -534,7 +554,12 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--init", type=_existing_file, default=None, metavar="ZIP",
                     help="start from this anchor checkpoint's weights")
     ta.add_argument("--imitate", type=_non_negative_int, default=0, metavar="ROUNDS",
-                    help="DAgger rounds imitating cpsim.expert.TrackingExpert before PPO (0: none)")
+                    help="DAgger rounds imitating the --teacher before PPO (0: none)")
+    ta.add_argument("--teacher", default="tracking", choices=["tracking", "reactive"],
+                    help="imitation teacher: tracking (cpsim.expert.TrackingExpert, follows its log) or "
+                         "reactive (cpsim.expert.ReactiveExpert, keeps gaps, yields, speed by condition)")
+    ta.add_argument("--add-womd", type=_existing_dir, default=None, metavar="DIR",
+                    help="add the WOMD scenes of this folder to the recipe's procedural training pool")
     ta.add_argument("--imitate-worlds", type=_positive_int, default=128, metavar="W", help="worlds per DAgger round")
     ta.add_argument("--imitate-epochs", type=_positive_int, default=10, metavar="N",
                     help="passes over the kept DAgger data per round")
@@ -553,7 +578,10 @@ def build_parser() -> argparse.ArgumentParser:
              "procedural tasks: every controllable agent driven by the policy under one condition. "
              "Prints them and writes them as JSON.")
     oc.add_argument("--model", default=DEFAULT_ANCHOR, metavar="ZIP",
-                    help="checkpoint (SB3 .zip, CounterPlay, BC .pt), or 'expert' for cpsim.expert.TrackingExpert")
+                    help="checkpoint (SB3 .zip, CounterPlay, BC .pt), or 'expert' for the --teacher")
+    oc.add_argument("--teacher", default="tracking", choices=["tracking", "reactive"],
+                    help="the expert of --model expert: tracking (cpsim.expert.TrackingExpert) or "
+                         "reactive (cpsim.expert.ReactiveExpert)")
     oc.add_argument("--dynamics", default="jerk", choices=["jerk", "classic"],
                     help="dynamics of the simulator for --model expert")
     oc.add_argument("--tasks", type=_positive_int, default=256, metavar="N", help="held-out tasks")

@@ -29,8 +29,12 @@ from cpalgo.common.policy_utils import actor_logits, critic_values, policy_step_
 from cpsim.conditions import sample_conditions
 from cpsim.config import Controller
 from cpsim.envs.selfplay import OBS_BOUND
+from cpsim.expert import EXPERTS
 
-__all__ = ["ImitationConfig", "EpisodeBatch", "collect_episodes", "imitation_losses", "imitate_expert"]
+#: Imitation teachers by name (cpsim.expert.make_expert).
+TEACHERS: tuple[str, ...] = EXPERTS
+
+__all__ = ["TEACHERS", "ImitationConfig", "EpisodeBatch", "collect_episodes", "imitation_losses", "imitate_expert"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +54,10 @@ class ImitationConfig:
         value_coef: weight of the critic's regression loss.
         gamma: discount of the critic's return targets.
         max_grad_norm: gradient clipping.
+        teacher: ``"tracking"`` (:class:`cpsim.expert.TrackingExpert`, follows its log and
+            ignores other vehicles, one behaviour for every condition) or ``"reactive"``
+            (:class:`cpsim.expert.ReactiveExpert`, keeps gaps, yields at crossings, and drives
+            faster or slower with each agent's condition).
     """
 
     iterations: int = 6
@@ -64,8 +72,11 @@ class ImitationConfig:
     value_coef: float = 0.5
     gamma: float = 0.99
     max_grad_norm: float = 0.5
+    teacher: str = "tracking"
 
     def __post_init__(self) -> None:
+        if self.teacher not in TEACHERS:
+            raise ValueError(f"ImitationConfig.teacher: unknown teacher {self.teacher!r}; accepted: {list(TEACHERS)}")
         for name in ("iterations", "episodes", "num_worlds", "keep_rounds", "epochs", "batch_sequences"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -193,7 +204,7 @@ def imitation_losses(policy, obs: th.Tensor, labels: th.Tensor, mask: th.Tensor,
 def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: ImitationConfig | None = None,
                    sim_config: Any = None, seed: int = 0,
                    log: Callable[[str], None] | None = print) -> list[dict[str, float]]:
-    """DAgger warm start of ``model.policy`` from :class:`cpsim.expert.TrackingExpert`.
+    """DAgger warm start of ``model.policy`` from the teacher ``config.teacher``.
 
     Args:
         model: a RecurrentPPO-family model with a discrete action space whose env is a
@@ -208,7 +219,7 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         one dict per round: beta, agreement (argmax = expert before training on the round),
         cross_entropy, value_mse (mean training losses of the round's last epoch), transitions, seconds.
     """
-    from cpsim.expert import TrackingExpert
+    from cpsim.expert import make_expert
     from cpsim.simulator import Simulator
 
     cfg = config or ImitationConfig()
@@ -231,7 +242,7 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
     if model.observation_space.shape != (sim.obs_layout.size,):
         raise ValueError(f"model: observation shape {model.observation_space.shape} does not match the "
                          f"simulator's ({sim.obs_layout.size},)")
-    expert = TrackingExpert(sim)
+    expert = make_expert(cfg.teacher, sim)
     rng = np.random.default_rng(seed)
     policy = model.policy
     optimizer = th.optim.Adam(policy.parameters(), lr=cfg.learning_rate)

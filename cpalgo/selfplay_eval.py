@@ -84,13 +84,16 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
 
 
 def expert_outcomes(scenarios: Sequence[Scenario], condition: Any = "normal", max_agents: int = 8,
-                    config: Any = None, chunk: int = 256, seed: int = 0) -> OutcomeRates:
-    """As :func:`selfplay_outcomes`, with every POLICY agent driven by
-    :class:`cpsim.expert.TrackingExpert` (the imitation teacher; an upper reference)."""
-    from cpsim.expert import TrackingExpert
+                    config: Any = None, chunk: int = 256, seed: int = 0, teacher: str = "tracking") -> OutcomeRates:
+    """As :func:`selfplay_outcomes`, with every POLICY agent driven by the imitation teacher
+    ``teacher`` (:func:`cpsim.expert.make_expert`: "tracking" or "reactive"; an upper reference)."""
+    from cpsim.expert import EXPERTS, make_expert
+
+    if teacher not in EXPERTS:  # before any simulator is built
+        raise ValueError(f"teacher: unknown expert {teacher!r}; accepted: {list(EXPERTS)}")
 
     def drive(sim: Simulator) -> None:
-        expert = TrackingExpert(sim)
+        expert = make_expert(teacher, sim)
         for _ in range(sim.config.episode_steps):
             sim.step(expert.actions())
             if bool(sim.world_done.all()):

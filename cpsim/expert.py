@@ -120,10 +120,18 @@ class TrackingExpert:
         return torch.where((s >= end_s)[:, None] | (n <= 1)[:, None], end_point, point)
 
     # ------------------------------------------------------------------ the controller
-    def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Desired (longitudinal acceleration, lateral acceleration) per slot, (W, A) m/s^2."""
+    def _schedule_factor(self) -> torch.Tensor | None:
+        """Per-slot speed factor on the logged schedule (W*A,), or None for the log's own."""
+        return None
+
+    def _tracking(self):
+        """Pure pursuit and the (time-warped) logged speed schedule, flattened over slots.
+
+        Returns (a_long, a_lat, s_proj, rows, have), each (W*A,): desired accelerations
+        m/s^2, arc position on the path m, log row, slot holds an agent.
+        """
         sim, g = self.sim, self.gains
-        W, A = sim.num_worlds, sim.max_agents
+        A = sim.max_agents
         rows = self._agent_row.reshape(-1).long()
         have = rows >= 0
         rows = rows.clamp(min=0)
@@ -157,18 +165,42 @@ class TrackingExpert:
         kappa = 2.0 * y_e / dist ** 2
         a_lat = (speed.clamp(min=1.0) ** 2 * kappa).clamp(*JERK_A_LAT_RANGE)
 
-        # longitudinal: the logged speed of the next step, corrected towards the logged arc
+        # longitudinal: the logged speed of the next step, corrected towards the logged arc;
+        # a schedule factor f replays the log f times as fast (time t reads the log at f t)
         T = self._log_speed.shape[1]
-        t_next = (t + 1).clamp(max=T - 1)
-        t_now = t.clamp(max=T - 1)
-        # no log at a step (left the log): use the last logged step before it
-        v_log = self._logged(self._log_speed, rows, t_next)
-        s_log = self._logged(self._log_s, rows, t_now)  # where the log is now
+        factor = self._schedule_factor()
+        if factor is None:
+            t_next = (t + 1).clamp(max=T - 1)
+            t_now = t.clamp(max=T - 1)
+            # no log at a step (left the log): use the last logged step before it
+            v_log = self._logged(self._log_speed, rows, t_next)
+            s_log = self._logged(self._log_s, rows, t_now)  # where the log is now
+        else:
+            v_log = factor * self._logged_at(self._log_speed, rows, factor * (t + 1).float(), T)
+            s_log = self._logged_at(self._log_s, rows, factor * t.float(), T)
         lag = (s_log - s_proj).clamp(-g.lag_cap, g.lag_cap)
         v_ref = v_log + g.position_gain / max(g.speed_gain, 1e-6) * lag
         a_long = g.speed_gain * (v_ref - v)
         stopped = (v_log < g.stop_speed) & (lag < 0.5)
         a_long = torch.where(stopped, -2.0 * v.clamp(min=0.0) / 0.5, a_long)
+        return a_long, a_lat, s_proj, rows, have
+
+    def _logged_at(self, values: torch.Tensor, rows: torch.Tensor, t: torch.Tensor, T: int) -> torch.Tensor:
+        """values[row] linearly interpolated at fractional log time t (N,), clamped to the log."""
+        t = t.clamp(0.0, T - 1.0)
+        lo = t.floor().long()
+        hi = (lo + 1).clamp(max=T - 1)
+        f = t - lo.float()
+        return (1.0 - f) * self._logged(values, rows, lo) + f * self._logged(values, rows, hi)
+
+    def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Desired (longitudinal acceleration, lateral acceleration) per slot, (W, A) m/s^2."""
+        W, A = self.sim.num_worlds, self.sim.max_agents
+        a_long, a_lat, _, _, have = self._tracking()
+        return self._finish(a_long, a_lat, have, W, A)
+
+    @staticmethod
+    def _finish(a_long, a_lat, have, W: int, A: int) -> tuple[torch.Tensor, torch.Tensor]:
         a_long = a_long.clamp(*JERK_A_LONG_RANGE)
         a_long = torch.where(have, a_long, torch.zeros_like(a_long))
         a_lat = torch.where(have, a_lat, torch.zeros_like(a_lat))
@@ -199,10 +231,184 @@ class TrackingExpert:
         return (il * steer.numel() + it).to(torch.int32)
 
 
+@dataclasses.dataclass(frozen=True)
+class ReactiveStyle:
+    """How the reactive expert's driving depends on an agent's boldness b in [0, 1].
+
+    Boldness comes from the style fields of the agent's condition,
+    ``b = 1 - collision / (2 * 3) - comfort / (2 * 0.1)`` clipped to [0, 1] (aggressive 0.97,
+    normal-aggressive 0.61, normal 0.25, cautious-normal 0.13, cautious 0). Every parameter
+    below is ``cautious + b * (bold - cautious)``.
+
+    Attributes:
+        schedule: speed factor on the logged schedule (the log replayed this many times as fast).
+        headway: IDM time headway to a leader, s.
+        min_gap: IDM jam gap, m.
+        yield_margin: a crossing agent is yielded to when it reaches the crossing point
+            before this agent's arrival time plus this margin, s (negative: only when it
+            arrives that much earlier).
+        lookahead: path length scanned for leaders and crossings, m (plus 3 s of travel).
+        max_accel: IDM acceleration scale, m/s^2.
+        comfort_brake: IDM comfortable deceleration, m/s^2.
+    """
+
+    schedule: tuple[float, float] = (0.95, 1.25)
+    headway: tuple[float, float] = (1.5, 0.6)
+    min_gap: tuple[float, float] = (3.0, 1.0)
+    yield_margin: tuple[float, float] = (0.5, -0.5)
+    lookahead: float = 15.0
+    max_accel: float = 2.0
+    comfort_brake: float = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("schedule", "headway", "min_gap", "yield_margin"):
+            pair = getattr(self, name)
+            if len(pair) != 2 or not all(np.isfinite(pair)):
+                raise ValueError(f"ReactiveStyle.{name}: expected (cautious, bold) finite values, got {pair!r}")
+        if min(self.schedule) <= 0 or min(self.headway) < 0 or min(self.min_gap) < 0:
+            raise ValueError("ReactiveStyle: schedule must be > 0, headway and min_gap >= 0")
+        for name in ("lookahead", "max_accel", "comfort_brake"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"ReactiveStyle.{name}: must be > 0, got {getattr(self, name)!r}")
+
+    def at(self, name: str, boldness: torch.Tensor) -> torch.Tensor:
+        lo, hi = getattr(self, name)
+        return lo + boldness * (hi - lo)
+
+
+def boldness(conditions: torch.Tensor) -> torch.Tensor:
+    """Boldness in [0, 1] of raw conditions (..., 10): see :class:`ReactiveStyle`."""
+    from cpsim.conditions import FIELD_INDEX
+
+    col = conditions[..., FIELD_INDEX["collision"]] / 6.0
+    com = conditions[..., FIELD_INDEX["comfort"]] / 0.2
+    return (1.0 - col - com).clamp(0.0, 1.0)
+
+
+class ReactiveExpert(TrackingExpert):
+    """A style-conditioned teacher that reacts to other vehicles.
+
+    The tracking expert follows its log and ignores everyone else, so a policy that imitates
+    it collides with traffic that does not replay the log, and every condition gets the same
+    labels. This teacher keeps the tracking expert's steering and changes its speed:
+
+    * it replays the logged speed schedule ``schedule(b)`` times as fast (bold agents
+      arrive early, cautious ones late, so waiting and timeouts grow with caution);
+    * it keeps an IDM gap to the nearest vehicle on its path ahead (headway and jam gap
+      per style) and treats a moving vehicle whose next 3 s cross the path ahead, and that
+      gets there before this agent would (plus ``yield_margin(b)``), as a stopped obstacle
+      at the crossing point.
+
+    The longitudinal target is the smaller of the tracking and the IDM accelerations.
+    Everything is batched over worlds x agents x agents in torch (no Python loop over
+    agents). ``b`` is each agent's :func:`boldness`, read from its live condition.
+    """
+
+    #: Points sampled along the path ahead and along a crossing agent's next 3 s.
+    PATH_POINTS = 12
+    PREDICTION_POINTS = 7
+    PREDICTION_HORIZON = 3.0
+
+    def __init__(self, sim, gains: TrackingGains | None = None, style: ReactiveStyle | None = None) -> None:
+        super().__init__(sim, gains)
+        self.style = style or ReactiveStyle()
+        self._conditions = sim.conditions  # live view
+        self._bold: torch.Tensor | None = None
+
+    def _schedule_factor(self) -> torch.Tensor:
+        return self.style.at("schedule", self._bold)
+
+    def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
+        sim, st = self.sim, self.style
+        W, A = sim.num_worlds, sim.max_agents
+        self._bold = boldness(self._conditions.reshape(W * A, -1))
+        a_track, a_lat, s_proj, rows, have = self._tracking()
+        v = sim.speed.reshape(-1).clamp(min=0.0)
+
+        # sample the path ahead: K points at arcs s_proj + d_k, (N, K, 2)
+        K = self.PATH_POINTS
+        reach = st.lookahead + self.PREDICTION_HORIZON * v  # (N,)
+        d_k = reach[:, None] * torch.linspace(0.0, 1.0, K)[None, :]  # (N, K)
+        N = rows.numel()
+        pts = self._path_point(rows.repeat_interleave(K), (s_proj[:, None] + d_k).reshape(-1)).reshape(N, K, 2)
+        dirs = torch.diff(pts, dim=1, append=pts[:, -1:] + (pts[:, -1:] - pts[:, -2:-1]))
+        dirs = dirs / torch.linalg.norm(dirs, dim=-1, keepdim=True).clamp(min=1e-6)
+
+        # others in the same world: (W, A_i, A_j)
+        pos = sim.xy.reshape(W, A, 2)
+        vel = sim.velocity.reshape(W, A, 2)
+        size = sim.size.reshape(W, A, -1)
+        length, width = size[..., 0], size[..., 1]
+        alive = sim.alive.reshape(W, A)
+        other = alive[:, None, :] & ~torch.eye(A, dtype=torch.bool)[None]
+        heading = sim.heading.reshape(W, A)
+        fwd = torch.stack([torch.cos(heading), torch.sin(heading)], -1)
+        rel = pos[:, None, :, :] - pos[:, :, None, :]  # (W, i, j, 2): j relative to i
+        ahead = (rel * fwd[:, :, None, :]).sum(-1) > 0.0
+        half_w = 0.5 * (width[:, :, None] + width[:, None, :])
+        half_l = 0.5 * (length[:, :, None] + length[:, None, :])
+        pts_w = pts.reshape(W, A, K, 2)
+        # leaders: j's centre near the path ahead
+        d_lead = torch.linalg.norm(pos[:, None, :, None, :] - pts_w[:, :, None, :, :], dim=-1)  # (W,i,j,K)
+        k_lead = d_lead.argmin(-1)
+        on_path = (d_lead.amin(-1) <= half_w + 0.3) & ahead & other
+        arc = d_k.reshape(W, A, K)
+        gap_lead = torch.gather(arc, 2, k_lead) - half_l
+        dir_lead = torch.gather(dirs.reshape(W, A, K, 2), 2, k_lead[..., None].expand(-1, -1, -1, 2))
+        v_lead = (vel[:, None, :, :] * dir_lead).sum(-1).clamp(min=0.0)
+        # crossings: j's next 3 s of straight motion meet the path ahead
+        M = self.PREDICTION_POINTS
+        tau = torch.linspace(0.0, self.PREDICTION_HORIZON, M)
+        pred = pos[:, :, None, :] + tau[None, None, :, None] * vel[:, :, None, :]  # (W, j, M, 2)
+        d_cross = torch.linalg.norm(pred[:, None, :, :, None, :] - pts_w[:, :, None, None, :, :], dim=-1)
+        hit = d_cross <= (half_w + 0.5)[..., None, None]  # (W, i, j, M, K)
+        moving = torch.linalg.norm(vel, dim=-1) > 0.5
+        big = torch.finfo(torch.float32).max
+        arrive_j = torch.where(hit, tau[None, None, None, :, None].expand_as(hit), torch.full_like(d_cross, big))
+        first_tau, first_m = arrive_j.amin(-1).min(-1)  # earliest crossing per (i, j)
+        k_cross = torch.where(hit.any(-1).any(-1),
+                              (hit.float() * torch.arange(K)[None, None, None, None, :]).masked_fill(~hit, K)
+                              .amin(-1).amin(-1).long(), torch.zeros_like(first_m))
+        arc_cross = torch.gather(arc, 2, k_cross.clamp(max=K - 1))
+        t_i = arc_cross / v.reshape(W, A, 1).clamp(min=0.5)
+        margin = self.style.at("yield_margin", self._bold).reshape(W, A, 1)
+        crossing = (hit.any(-1).any(-1) & moving[:, None, :] & other & ~on_path
+                    & (first_tau < t_i + margin))
+        gap_cross = arc_cross - 0.5 * length[:, :, None] - 0.5 * torch.maximum(length, width)[:, None, :]
+
+        inf = torch.full_like(gap_lead, big)
+        gaps = torch.minimum(torch.where(on_path, gap_lead, inf), torch.where(crossing, gap_cross, inf))
+        gap, j_min = gaps.min(-1)  # (W, A)
+        v_obst = torch.where(torch.gather(on_path, 2, j_min[..., None])[..., 0],
+                             torch.gather(v_lead, 2, j_min[..., None])[..., 0], torch.zeros_like(gap))
+        has = gap < big
+        v_i = v.reshape(W, A)
+        headway = self.style.at("headway", self._bold).reshape(W, A)
+        min_gap = self.style.at("min_gap", self._bold).reshape(W, A)
+        amax, bc = st.max_accel, st.comfort_brake
+        s_star = min_gap + (v_i * headway + v_i * (v_i - v_obst) / (2.0 * (amax * bc) ** 0.5)).clamp(min=0.0)
+        a_idm = amax * (1.0 - (s_star / gap.clamp(min=0.1)) ** 2)
+        a_idm = torch.where(has, a_idm, torch.full_like(a_idm, big)).reshape(-1)
+        a_long = torch.minimum(a_track, a_idm)
+        return self._finish(a_long, a_lat, have, W, A)
+
+
+def make_expert(name: str, sim, **kwargs):
+    """The imitation teacher by name: ``"tracking"`` (:class:`TrackingExpert`) or
+    ``"reactive"`` (:class:`ReactiveExpert`)."""
+    if name not in EXPERTS:
+        raise ValueError(f"teacher: unknown expert {name!r}; accepted: {list(EXPERTS)}")
+    return {"tracking": TrackingExpert, "reactive": ReactiveExpert}[name](sim, **kwargs)
+
+
+#: Names accepted by :func:`make_expert`.
+EXPERTS: tuple[str, ...] = ("tracking", "reactive")
+
+
 def _jerk_next(a: torch.Tensor, delta: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
     """The jerk model's next acceleration for every candidate increment (sign change -> 0)."""
     new = a + delta
     return torch.where(a * new < 0.0, torch.zeros_like(new), new.clamp(*bounds))
 
 
-__all__ = ["TrackingExpert", "TrackingGains"]
+__all__ = ["TrackingExpert", "TrackingGains", "ReactiveExpert", "ReactiveStyle", "boldness", "make_expert", "EXPERTS"]

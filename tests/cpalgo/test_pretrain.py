@@ -38,6 +38,8 @@ def test_config_rejects_unknown_and_bad_values():
         ImitationConfig(beta=1.5)
     with pytest.raises(ValueError, match="iterations"):
         ImitationConfig(iterations=0)
+    with pytest.raises(ValueError, match="teacher: unknown teacher 'idm'"):
+        ImitationConfig(teacher="idm")
 
 
 def test_expert_driven_episode_is_labelled_with_the_actions_it_took():
@@ -91,6 +93,15 @@ def test_imitate_expert_trains_the_policy_and_reports_rounds():
     obs = model.get_env().reset()
     actions, _ = model.predict(obs, deterministic=True)
     assert actions.shape == (model.get_env().num_envs,)
+
+
+def test_imitate_the_reactive_teacher():
+    model = _model()
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    history = imitate_expert(model, config=ImitationConfig(iterations=1, num_worlds=3, epochs=1, batch_sequences=8,
+                                                           teacher="reactive"), log=None)
+    assert history[0]["transitions"] > 0
+    assert any(not th.equal(a, b) for a, b in zip(before, model.policy.parameters()))
 
 
 def test_imitate_expert_rejects_a_mismatched_observation_space():
