@@ -257,13 +257,6 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
 
 
 # ============================================================================ NumPy references
-def decode_action(dynamics: str, action: int) -> tuple[float, float]:
-    """(longitudinal, lateral) command of an action index: jerks (jerk) or (accel, steer) (classic)."""
-    if dynamics == "jerk":
-        return float(JERK_LONG[action // 3]), float(JERK_LAT[action % 3])
-    return float(CLASSIC_ACCEL[action // 13]), float(CLASSIC_STEER[action % 13])
-
-
 def jerk_step_np(x, y, heading, vx, vy, a_long, a_lat, steer, length, j_long, j_lat, dt=0.1):
     """Reference jerk step in float64; returns a dict of the new state."""
     hx, hy = math.cos(heading), math.sin(heading)
@@ -314,4 +307,4 @@ def wrap(a: float) -> float:
 
 
 __all__ = ["jerk_step", "classic_step", "dynamics_kernel", "jerk_step_np", "classic_step_np",
-           "decode_action", "WHEELBASE_FRACTION"]
+           "WHEELBASE_FRACTION"]

@@ -207,16 +207,6 @@ def segment_hits_box_cs(p0: wp.vec2f, p1: wp.vec2f, centre: wp.vec2f, c: float, 
 
 
 @wp.func
-def point_segment(p: wp.vec2f, a: wp.vec2f, b: wp.vec2f):
-    """Distance from p to segment a-b, and the signed side (cross of (b-a, p-a), left +)."""
-    ab = b - a
-    ab2 = wp.max(wp.dot(ab, ab), 1.0e-12)
-    t = wp.clamp(wp.dot(p - a, ab) / ab2, 0.0, 1.0)
-    d = p - (a + t * ab)
-    return wp.length(d), cross2(ab, p - a)
-
-
-@wp.func
 def grid_cell(m: ModelArrays, g: int, p: wp.vec2f, clamp: bool) -> int:
     """Global cell index of point p in scenario g's grid; -1 outside unless ``clamp``."""
     o = m.grid_origin[g]
@@ -424,10 +414,6 @@ def kind_at_fault(kind: int, straddled: bool) -> bool:
 
 
 # ============================================================================ NumPy references
-def wrap_angle_np(a: np.ndarray) -> np.ndarray:
-    return a - 2.0 * np.pi * np.floor((a + np.pi) / (2.0 * np.pi))
-
-
 def box_corners_np(xy: np.ndarray, heading: np.ndarray, size: np.ndarray) -> np.ndarray:
     """(..., 4, 2) corners FL, FR, RR, RL of boxes (..., 2) xy, (...,) heading, (..., 2) (L, W)."""
     xy = np.asarray(xy, np.float64)
@@ -547,9 +533,9 @@ def lane_distance_np(xy, segments) -> np.ndarray:
 
 
 __all__ = [
-    "wrap_angle", "boxes_overlap", "segments_intersect", "segment_hits_box", "point_segment",
+    "wrap_angle", "boxes_overlap", "segments_intersect", "segment_hits_box",
     "grid_cell", "lane_query", "lane_distance", "straddles_divider", "collision_kind", "kind_at_fault",
     "box_corner", "boxes_overlap_np", "segments_intersect_np", "classify_collision",
-    "straddles_divider_np", "classify_fault", "lane_distance_np", "box_corners_np", "wrap_angle_np",
+    "straddles_divider_np", "classify_fault", "lane_distance_np", "box_corners_np",
     "COLLISION_KIND_NAMES", "NO_LANE_DISTANCE",
 ]
