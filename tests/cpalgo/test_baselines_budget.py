@@ -18,12 +18,13 @@ from tests.cpalgo.test_baselines_common import (  # noqa: E402,F401
     ALGO,
     ALL_METHODS,
     CONTINUATION_METHODS,
-    _one_torch_thread,
     anchor,
     make_env,
     save_anchor,
     tiny_settings,
 )
+
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 RECIPE = """cpsim/SelfPlay-v0:
   policy: 'MlpLstmPolicy'

@@ -9,7 +9,9 @@ pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
 from cpalgo.cl4ad.curriculum import LearnabilitySampler  # noqa: E402
 from cpalgo.methods.base import base_vec_env  # noqa: E402
-from tests.cpalgo.test_baselines_common import _one_torch_thread, anchor, build, collect  # noqa: E402,F401
+from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
+
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def test_sampler_prefers_scenarios_with_mixed_outcomes():

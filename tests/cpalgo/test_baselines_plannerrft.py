@@ -14,7 +14,9 @@ from cpalgo.common.continuations import ContinuationRunner, GroupJob, branch_sim
 from cpalgo.methods.base import base_vec_env  # noqa: E402
 from cpalgo.plannerrft.plannerrft import grpo_objective  # noqa: E402
 from cpsim.config import Controller  # noqa: E402
-from tests.cpalgo.test_baselines_common import _one_torch_thread, anchor, build, collect  # noqa: E402,F401
+from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
+
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def test_continuations_drive_against_log_replayed_traffic(anchor):

@@ -10,7 +10,9 @@ pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
 from cpalgo.bc import BCPolicy  # noqa: E402
 from cpalgo.methods.base import frozen_policy_copy  # noqa: E402
-from tests.cpalgo.test_baselines_common import _one_torch_thread, anchor, build, collect  # noqa: E402,F401
+from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
+
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def minibatch_kls(model) -> list[float]:

@@ -8,7 +8,9 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from tests.cpalgo.test_baselines_common import _one_torch_thread, anchor, build, collect  # noqa: E402,F401
+from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
+
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def test_root_value_is_the_mean_continuation_return_and_enters_the_advantages(anchor):

@@ -8,14 +8,7 @@ import torch as th
 
 from cpalgo.bc import BCData, BCPolicy, TrainConfig, train
 
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Small batches on a shared 2-core machine: one thread avoids contention."""
-    n = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def _synthetic(n: int = 3000, d: int = 24, k: int = 12, seed: int = 0) -> BCData:

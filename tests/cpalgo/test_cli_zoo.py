@@ -6,17 +6,13 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 import yaml
 
 from cpalgo import cli, zoo
 from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
 from cpalgo.recipes import SELFPLAY_ENV_ID, ZOO_DIR, load_recipe, resolve_path, shipped_names, shipped_path
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def tiny_recipe(tmp_path: Path, source: Path, **extra) -> Path:

@@ -18,13 +18,7 @@ SMALL = dict(n_steps=32, batch_size=32, n_epochs=2, device="cpu",
 OFF = dict(counterfactual=False, mask_inactive=False)
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny networks on a shared 2-core machine: one intra-op thread is ~10x faster."""
-    previous = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def _params(model) -> dict[str, th.Tensor]:

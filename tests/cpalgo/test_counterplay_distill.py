@@ -16,13 +16,7 @@ OBS_DIM = 16
 COND = slice(3, 13)  # where the fake layout keeps the normalised condition
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny networks on a shared 2-core machine: one intra-op thread is ~10x faster."""
-    previous = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def replace_condition(obs: th.Tensor, raw: th.Tensor) -> th.Tensor:

@@ -9,7 +9,6 @@ import sys
 
 import numpy as np
 import pytest
-import torch as th
 import yaml
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
@@ -39,12 +38,7 @@ RECIPE = """cpsim/SelfPlay-v0:
 """
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    previous = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -34,12 +34,7 @@ ISSUE_METHODS = [
 ]
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    previous = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def make_env(seed: int = 0) -> SelfPlayVecEnv:

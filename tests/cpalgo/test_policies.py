@@ -14,13 +14,7 @@ from cpalgo import CounterPlay
 from cpalgo.common.buffers import MaskedRecurrentRolloutBuffer
 from cpalgo.policies import MlpLstmPolicy, fused_process_sequence
 
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    previous = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def _pair(enable_critic_lstm: bool, seed: int = 0) -> tuple[RecurrentActorCriticPolicy, MlpLstmPolicy]:

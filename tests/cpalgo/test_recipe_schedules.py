@@ -87,12 +87,11 @@ def test_zoo_preprocessing_uses_the_same_parser():
         pre({"learning_rate": "cosine(x)"})
 
 
+@pytest.mark.usefixtures("_one_torch_thread")
 def test_cosine_schedule_drives_the_optimizer():
-    import torch
     from sb3_contrib import RecurrentPPO
     from stable_baselines3.common.env_util import make_vec_env
 
-    torch.set_num_threads(1)
     env = make_vec_env("CartPole-v1", n_envs=2, seed=0)
     model = RecurrentPPO("MlpLstmPolicy", env, n_steps=16, batch_size=32, n_epochs=1, seed=0,
                          learning_rate=parse_schedule("cosine(3e-5)"),

@@ -33,12 +33,7 @@ EPISODE = 40
 POLICY = dict(lstm_hidden_size=16, net_arch=[32])
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    previous = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 def make_env() -> SelfPlayVecEnv:

@@ -14,15 +14,7 @@ from cpsim.scenario import generate
 STEPS = 15
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    """Tiny networks: one torch thread is faster than two on a shared 2-core machine."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -10,15 +10,8 @@ from cpsim.scenario import generate
 W, A = 2, 6
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    """Tiny networks: one torch thread is faster than two on a shared 2-core machine."""
-    import torch
+pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 STEPS = 12  # short episodes keep the tests fast
 
 
