@@ -46,7 +46,7 @@ import numpy as np
 import warp as wp
 
 from cpsim.config import SimConfig
-from cpsim.scenario.datatypes import RoadType, Scenario, ScenarioError
+from cpsim.scenario.datatypes import RoadType, Scenario, ScenarioError, validate_scenarios
 
 #: Largest number of grid cells per scenario; larger maps get proportionally larger cells.
 MAX_CELLS_PER_SCENARIO = 40_000
@@ -322,14 +322,7 @@ class Model:
 
     def __init__(self, scenarios: Sequence[Scenario], config: SimConfig | None = None, device: str = "cpu"):
         config = config or SimConfig()
-        if isinstance(scenarios, Scenario):
-            scenarios = [scenarios]
-        scenarios = list(scenarios)
-        if not scenarios:
-            raise ValueError("scenarios: the pool is empty")
-        for i, sc in enumerate(scenarios):
-            if not isinstance(sc, Scenario):
-                raise ValueError(f"scenarios[{i}]: expected a cpsim.Scenario, got {type(sc).__name__}")
+        scenarios = validate_scenarios(scenarios, needs="the pool")
         self.scenarios = scenarios
         self.config = config
         self.device = str(device)

@@ -41,7 +41,7 @@ def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_
     ``num_scenarios`` caps the count (procedural: how many scenarios to generate).
     """
     from cpsim import scenario as scen_mod
-    from cpsim.scenario.datatypes import Scenario
+    from cpsim.scenario.datatypes import validate_scenarios
 
     given = [n for n, v in (("scenarios", scenarios), ("family", family), ("womd_dir", womd_dir)) if v is not None]
     if len(given) > 1:
@@ -49,14 +49,7 @@ def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_
     if num_scenarios is not None and int(num_scenarios) < 1:
         raise ValueError(f"num_scenarios must be >= 1, got {num_scenarios}")
     if scenarios is not None:
-        if isinstance(scenarios, Scenario):
-            scenarios = [scenarios]
-        out = list(scenarios)
-        if not out:
-            raise ValueError("scenarios: empty list")
-        for k, s in enumerate(out):
-            if not isinstance(s, Scenario):
-                raise ValueError(f"scenarios[{k}]: expected a cpsim.Scenario, got {type(s).__name__}")
+        out = validate_scenarios(scenarios, needs="a pool")
     elif family is not None:
         families = tuple(scen_mod.FAMILIES)
         if family not in families:

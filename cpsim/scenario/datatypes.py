@@ -259,3 +259,27 @@ class Scenario:
             "road_points": int(self.road_points.shape[0]),
             "ego_goal_distance_m": float(self.goal_distance[self.ego_index]),
         }
+
+
+def validate_scenarios(scenarios: Any, argument: str = "scenarios", *, needs: str | None = None,
+                       single: bool = True) -> list[Scenario]:
+    """``scenarios`` as a new list, every item checked to be a :class:`Scenario`.
+
+    The one check of every API that takes a list of scenarios (the simulator's pool, the
+    self-play env, the splits). With ``single`` one Scenario stands for a list of one.
+    ``needs`` names what cannot work without a scenario ("a pool", "a split"): an empty
+    list then raises; ``None`` lets it through.
+
+    Raises:
+        ValueError: ``"<argument>: empty; <needs> needs at least one scenario"``, or
+            ``"<argument>[i]: expected a Scenario (cpsim.Scenario), got <type>"``.
+    """
+    if single and isinstance(scenarios, Scenario):
+        return [scenarios]
+    out = list(scenarios)
+    if not out and needs is not None:
+        raise ValueError(f"{argument}: empty; {needs} needs at least one scenario")
+    for i, s in enumerate(out):
+        if not isinstance(s, Scenario):
+            raise ValueError(f"{argument}[{i}]: expected a Scenario (cpsim.Scenario), got {type(s).__name__}")
+    return out

@@ -41,7 +41,7 @@ from typing import Any, Sequence, Union
 import numpy as np
 
 from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER
-from cpsim.scenario.datatypes import DT, AgentType, RoadType, Scenario
+from cpsim.scenario.datatypes import DT, AgentType, RoadType, Scenario, validate_scenarios
 from cpsim.scenario.geometry_utils import point_polyline_distance, point_segment_distance
 
 __all__ = [
@@ -426,9 +426,7 @@ def track_tasks(scenarios: Sequence[Scenario], vehicles_only: bool = True) -> li
     tracks are all non-vehicles gives none. Eligibility is not checked here.
     """
     out: list[Scenario] = []
-    for i, s in enumerate(scenarios):
-        if not isinstance(s, Scenario):
-            raise ValueError(f"scenarios[{i}]: expected a Scenario, got {type(s).__name__}")
+    for s in validate_scenarios(scenarios, single=False):
         tracks = [int(k) for k in dict.fromkeys(s.tracks_to_predict.tolist())]
         if not tracks:
             out.append(s)
@@ -457,12 +455,7 @@ def _tasks_of(source: TaskSource, cache_dir: str | os.PathLike | None) -> list[S
 
 
 def _check_split_args(scenarios: Sequence[Scenario], n: Any) -> list[Scenario]:
-    pool = list(scenarios)
-    if not pool:
-        raise ValueError("scenarios: empty; a split needs at least one scenario")
-    for i, s in enumerate(pool):
-        if not isinstance(s, Scenario):
-            raise ValueError(f"scenarios[{i}]: expected a Scenario, got {type(s).__name__}")
+    pool = validate_scenarios(scenarios, needs="a split", single=False)
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"n: expected a non-negative integer, got {n!r}")
     return pool

@@ -93,6 +93,27 @@ def test_bad_scenarios_raise_with_field(mutate, field):
     assert "file.json" in str(err.value) and f"'{field}'" in str(err.value)
 
 
+def test_validate_scenarios_is_the_one_list_check():
+    from cpsim.envs.selfplay import resolve_scenarios
+    from cpsim.scenario import interactive_split
+    from cpsim.scenario.datatypes import validate_scenarios
+
+    sc = Scenario(**make_fields())
+    assert validate_scenarios(sc) == [sc] and validate_scenarios((sc, sc)) == [sc, sc]
+    assert validate_scenarios([], needs=None) == []
+    with pytest.raises(ValueError, match="scenarios: empty; a pool needs at least one scenario"):
+        validate_scenarios([], needs="a pool")
+    with pytest.raises(ValueError, match=r"tasks\[1\]: expected a Scenario \(cpsim.Scenario\), got str"):
+        validate_scenarios([sc, "x"], "tasks")
+    # the same messages from every API that takes scenarios
+    for call in (lambda x: cpsim.Simulator(x, num_worlds=1, max_agents=1), resolve_scenarios,
+                 lambda x: interactive_split(x, 1)):
+        with pytest.raises(ValueError, match="scenarios: empty; .* needs at least one scenario"):
+            call([])
+        with pytest.raises(ValueError, match=r"scenarios\[0\]: expected a Scenario"):
+            call([1])
+
+
 def test_profiles_and_midpoints():
     assert set(PANEL) <= set(PROFILES)
     np.testing.assert_allclose(
