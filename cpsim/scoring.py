@@ -21,6 +21,13 @@ from typing import Mapping
 
 import numpy as np
 
+#: Comfort thresholds of a step (BehaviorBench): |a_long| m/s^2, |a_lat| m/s^2 and |jerk|
+#: m/s^3 (longitudinal or lateral). The one source of these values: the simulator's Warp
+#: function (``cpsim.kernels.reward.comfort_violations``, through Warp constants built from
+#: them), :func:`count_comfort_violations` and the evaluation (``cpalgo.evaluate.metrics``).
+COMFORT_A_LONG = 3.0
+COMFORT_A_LAT = 3.0
+COMFORT_JERK = 5.0
 #: Number of comfort checks per step (the 3 in 3 T).
 COMFORT_CHECKS_PER_STEP = 3
 #: Mean lateral distance (m) at which lane_center reaches 0.
@@ -34,6 +41,15 @@ def _as_float(x: np.ndarray | float, name: str) -> np.ndarray:
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name}: contains NaN or infinite values")
     return a
+
+
+def count_comfort_violations(a_long, a_lat, jerk, lat_jerk=0.0) -> np.ndarray:
+    """Comfort violations per step (0..3, int32) of (...,) arrays:
+    1{|a_long| > COMFORT_A_LONG} + 1{|a_lat| > COMFORT_A_LAT} + 1{|jerk| or |lat_jerk| > COMFORT_JERK}
+    (the NumPy twin of the simulator's Warp function; no input checks)."""
+    a_long, a_lat, jerk, lat_jerk = (np.asarray(x, np.float64) for x in (a_long, a_lat, jerk, lat_jerk))
+    return ((np.abs(a_long) > COMFORT_A_LONG).astype(np.int32) + (np.abs(a_lat) > COMFORT_A_LAT)
+            + ((np.abs(jerk) > COMFORT_JERK) | (np.abs(lat_jerk) > COMFORT_JERK))).astype(np.int32)
 
 
 def metrics_from_accumulators(
@@ -125,5 +141,5 @@ def episode_scores(metrics: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     }
 
 
-__all__ = ["COMFORT_CHECKS_PER_STEP", "LANE_CENTER_CLAMP", "SCORE_WEIGHTS", "metrics_from_accumulators",
+__all__ = ["COMFORT_A_LONG", "COMFORT_A_LAT", "COMFORT_JERK", "count_comfort_violations", "COMFORT_CHECKS_PER_STEP", "LANE_CENTER_CLAMP", "SCORE_WEIGHTS", "metrics_from_accumulators",
            "task_score", "episode_scores"]

@@ -32,15 +32,14 @@ import numpy as np
 from cpsim.scoring import COMFORT_CHECKS_PER_STEP as COMFORT_CHECKS_PER_STEP
 from cpsim.scoring import LANE_CENTER_CLAMP as LANE_CENTER_CLAMP
 from cpsim.scoring import SCORE_WEIGHTS as SCORE_WEIGHTS
+from cpsim.scoring import count_comfort_violations
 from cpsim.scoring import episode_scores as episode_scores
 from cpsim.scoring import metrics_from_accumulators as metrics_from_accumulators
 from cpsim.scoring import task_score as task_score
 
 # ----------------------------------------------------------------------------- constants
-#: Comfort thresholds: |a_long| (m/s^2), |a_lat| (m/s^2), |jerk| (m/s^3).
-COMFORT_A_LONG_LIMIT = 3.0
-COMFORT_A_LAT_LIMIT = 3.0
-COMFORT_JERK_LIMIT = 5.0
+# comfort thresholds: cpsim.scoring.COMFORT_A_LONG / COMFORT_A_LAT / COMFORT_JERK (the
+# simulator's values; comfort_violations below counts with them)
 #: Lane queries: search radius (m) and alignment tolerance (deg); lane_center uses the true
 #: distance whatever the radius (NO_LANE_DISTANCE only when a map has no lane at all).
 LANE_SEARCH_RADIUS = 4.0
@@ -90,15 +89,8 @@ def comfort_violations(a_long: np.ndarray, a_lat: np.ndarray, jerk: np.ndarray,
     Returns:
         (...,) int32 count of violated comfort limits.
     """
-    a_long = _as_float(a_long, "a_long")
-    a_lat = _as_float(a_lat, "a_lat")
-    jerk = _as_float(jerk, "jerk")
-    lat_jerk = _as_float(lat_jerk, "lat_jerk")
-    return (
-        (np.abs(a_long) > COMFORT_A_LONG_LIMIT).astype(np.int32)
-        + (np.abs(a_lat) > COMFORT_A_LAT_LIMIT).astype(np.int32)
-        + ((np.abs(jerk) > COMFORT_JERK_LIMIT) | (np.abs(lat_jerk) > COMFORT_JERK_LIMIT)).astype(np.int32)
-    )
+    return count_comfort_violations(_as_float(a_long, "a_long"), _as_float(a_lat, "a_lat"),
+                                    _as_float(jerk, "jerk"), _as_float(lat_jerk, "lat_jerk"))
 
 
 # ----------------------------------------------------------------------------- from trajectories

@@ -32,15 +32,17 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from cpsim.scoring import COMFORT_A_LAT, COMFORT_A_LONG, COMFORT_JERK, count_comfort_violations
 from cpsim.state import NUM_REWARD_TERMS, REWARD_TERMS
 
 # condition field indices (cpsim.conditions.CONDITION_FIELDS order)
 C_GOAL_RADIUS, C_GOAL_SPEED, C_COLLISION, C_OFFROAD, C_COMFORT, C_LANE_ALIGN, C_VEL_ALIGN, \
     C_LANE_CENTER, C_CENTER_BIAS, C_REVERSE = range(10)
-#: Comfort thresholds (m/s^2, m/s^2, m/s^3).
-COMFORT_A_LONG = 3.0
-COMFORT_A_LAT = 3.0
-COMFORT_JERK = 5.0
+#: Comfort thresholds (m/s^2, m/s^2, m/s^3) as Warp constants, built from the Python values
+#: of :mod:`cpsim.scoring` (COMFORT_A_LONG, COMFORT_A_LAT, COMFORT_JERK): one source.
+WP_COMFORT_A_LONG = wp.constant(COMFORT_A_LONG)
+WP_COMFORT_A_LAT = wp.constant(COMFORT_A_LAT)
+WP_COMFORT_JERK = wp.constant(COMFORT_JERK)
 #: Speed scale of the velocity-alignment term (m/s).
 VEL_ALIGN_SCALE = 20.0
 
@@ -48,22 +50,21 @@ VEL_ALIGN_SCALE = 20.0
 @wp.func
 def comfort_violations(a_long: float, a_lat: float, jerk: float, lat_jerk: float) -> int:
     """Comfort violations of a step (0..3): 1{|a_long| > 3} + 1{|a_lat| > 3} + 1{|jerk| > 5},
-    where the jerk test counts the longitudinal or the lateral jerk (BehaviorBench)."""
+    where the jerk test counts the longitudinal or the lateral jerk (BehaviorBench); the
+    thresholds are those of :mod:`cpsim.scoring`."""
     n = int(0)
-    if wp.abs(a_long) > 3.0:
+    if wp.abs(a_long) > WP_COMFORT_A_LONG:
         n += 1
-    if wp.abs(a_lat) > 3.0:
+    if wp.abs(a_lat) > WP_COMFORT_A_LAT:
         n += 1
-    if wp.abs(jerk) > 5.0 or wp.abs(lat_jerk) > 5.0:
+    if wp.abs(jerk) > WP_COMFORT_JERK or wp.abs(lat_jerk) > WP_COMFORT_JERK:
         n += 1
     return n
 
 
 def comfort_violations_np(a_long, a_lat, jerk, lat_jerk) -> np.ndarray:
     """Reference of :func:`comfort_violations` over arrays (int32)."""
-    a_long, a_lat, jerk, lat_jerk = (np.asarray(x, np.float64) for x in (a_long, a_lat, jerk, lat_jerk))
-    return ((np.abs(a_long) > COMFORT_A_LONG).astype(np.int32) + (np.abs(a_lat) > COMFORT_A_LAT)
-            + ((np.abs(jerk) > COMFORT_JERK) | (np.abs(lat_jerk) > COMFORT_JERK))).astype(np.int32)
+    return count_comfort_violations(a_long, a_lat, jerk, lat_jerk)
 
 
 @wp.func
