@@ -46,7 +46,16 @@ class State:
     controller: wp.array2d(dtype=wp.int32)      # Controller
     task_agent: wp.array2d(dtype=wp.bool)       # controllable at reset (vehicle with a task)
     alive: wp.array2d(dtype=wp.bool)            # present and not removed
-    present: wp.array2d(dtype=wp.bool)          # present after dynamics, before events (scratch)
+    # present: the agent takes part in this step's events (alive when the step began and
+    # still in the world after the motion; written by the motion kernel and at reset only).
+    # Why not ``alive``: the events kernel clears ``alive`` of an agent it removes (goal,
+    # collision, off-road) in that agent's own thread while the other threads of the world
+    # test their agents against everyone. Reading the others' ``alive`` there would make
+    # whether an agent removed this step is still a collision partner depend on thread
+    # (or, on CPU, slot) order: one side of a collision could miss it. ``present`` does not
+    # change during the events, so every agent sees the same set and both sides record a
+    # collision. Rewritten every step (scratch between steps).
+    present: wp.array2d(dtype=wp.bool)
     finished: wp.array2d(dtype=wp.bool)         # the agent's episode ended (done was emitted)
     pos: wp.array2d(dtype=wp.vec2f)             # box centre, m
     heading: wp.array2d(dtype=wp.float32)       # rad

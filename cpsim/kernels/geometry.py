@@ -72,9 +72,17 @@ WP_DIVIDER_REACH = wp.constant(DIVIDER_REACH)
 WP_DIVIDER_DRIFT = wp.constant(DIVIDER_DRIFT)
 WP_NO_LANE_DISTANCE = wp.constant(NO_LANE_DISTANCE)
 
+#: Collision cases (the codes of the module docstring's table; ``collision_kind`` returns
+#: them, ``kind_at_fault`` and the at-fault rule of ``agent_events`` test them).
 STOPPED_EGO, STOPPED_TRACK, ACTIVE_REAR, ACTIVE_FRONT, ACTIVE_LATERAL, VULNERABLE = range(6)
 COLLISION_KIND_NAMES = ("stopped_ego", "stopped_track", "active_rear", "active_front", "active_lateral",
                         "vulnerable")
+KIND_STOPPED_EGO = wp.constant(STOPPED_EGO)         # the agent stood still: never at fault
+KIND_STOPPED_TRACK = wp.constant(STOPPED_TRACK)     # the other stood still: at fault
+KIND_ACTIVE_REAR = wp.constant(ACTIVE_REAR)         # the other came from behind: at fault if straddling
+KIND_ACTIVE_FRONT = wp.constant(ACTIVE_FRONT)       # closing in on the other ahead: at fault
+KIND_ACTIVE_LATERAL = wp.constant(ACTIVE_LATERAL)   # anything else, from the side: at fault if straddling
+KIND_VULNERABLE = wp.constant(VULNERABLE)           # the other is a pedestrian / cyclist: at fault
 
 
 # ============================================================================ Warp functions
@@ -384,7 +392,7 @@ def collision_kind(pa: wp.vec2f, ha: float, va: wp.vec2f, pb: wp.vec2f, vb: wp.v
                    other_vulnerable: bool) -> int:
     """BehaviorBench collision case of agent a hitting b from their pre-contact states
     (centres, a's heading, velocities; codes in the module docstring)."""
-    kind = int(4)
+    kind = int(KIND_ACTIVE_LATERAL)
     fwd = wp.vec2f(wp.cos(ha), wp.sin(ha))
     rel = pb - pa
     n = wp.length(rel)
@@ -394,23 +402,31 @@ def collision_kind(pa: wp.vec2f, ha: float, va: wp.vec2f, pb: wp.vec2f, vb: wp.v
     cos_b = wp.dot(u, fwd)
     closing = wp.dot(va - vb, u)
     if other_vulnerable:
-        kind = 5
+        kind = KIND_VULNERABLE
     elif wp.length(va) <= WP_STOPPED_SPEED:
-        kind = 0
+        kind = KIND_STOPPED_EGO
     elif wp.length(vb) <= WP_STOPPED_SPEED:
-        kind = 1
+        kind = KIND_STOPPED_TRACK
     elif cos_b < WP_COS_BEHIND:
-        kind = 2
+        kind = KIND_ACTIVE_REAR
     elif cos_b > WP_COS_FRONT and closing > WP_FRONT_CLOSING:
-        kind = 3
+        kind = KIND_ACTIVE_FRONT
     return kind
+
+
+@wp.func
+def kind_needs_straddle(kind: int) -> bool:
+    """Rear and lateral collisions: their fault depends on straddling a lane divider."""
+    return kind == KIND_ACTIVE_REAR or kind == KIND_ACTIVE_LATERAL
 
 
 @wp.func
 def kind_at_fault(kind: int, straddled: bool) -> bool:
     """Fault of a collision case: stopped other, front and vulnerable always; rear and
     lateral only while straddling a lane divider; a stopped agent never."""
-    return kind == 1 or kind == 3 or kind == 5 or ((kind == 2 or kind == 4) and straddled)
+    return (kind == KIND_STOPPED_TRACK or kind == KIND_ACTIVE_FRONT or kind == KIND_VULNERABLE
+            or (kind_needs_straddle(kind) and straddled))
+
 
 
 # ============================================================================ NumPy references
@@ -534,7 +550,7 @@ def lane_distance_np(xy, segments) -> np.ndarray:
 
 __all__ = [
     "wrap_angle", "boxes_overlap", "segments_intersect", "segment_hits_box",
-    "grid_cell", "lane_query", "lane_distance", "straddles_divider", "collision_kind", "kind_at_fault",
+    "grid_cell", "lane_query", "lane_distance", "straddles_divider", "collision_kind", "kind_at_fault", "kind_needs_straddle",
     "box_corner", "boxes_overlap_np", "segments_intersect_np", "classify_collision",
     "straddles_divider_np", "classify_fault", "lane_distance_np", "box_corners_np",
     "COLLISION_KIND_NAMES", "NO_LANE_DISTANCE",

@@ -54,6 +54,7 @@ from cpsim.kernels.geometry import (
     collision_kind,
     grid_cell,
     kind_at_fault,
+    kind_needs_straddle,
     lane_distance,
     lane_query,
     segment_hits_box_cs,
@@ -297,7 +298,7 @@ def agent_events(state: State, model: ModelArrays, params: Params, track_all: in
         kind = collision_kind(state.prev_pos[w, a], ph, state.prev_vel[w, a], state.prev_pos[w, j],
                               state.prev_vel[w, j], state.agent_type[w, j] != VEHICLE)
         straddled = bool(False)
-        if kind == 2 or kind == 4:
+        if kind_needs_straddle(kind):  # rear / lateral: fault only when straddling
             nh = state.pos_hist.shape[2]
             newest = state.step_count[w] % nh
             straddled = straddles_divider(model, g, state.pos_hist[w, a, (newest + 1) % nh],
