@@ -126,17 +126,19 @@ def _policy_obs(sim) -> th.Tensor:
 
 @th.no_grad()
 def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
-                     gamma: float = 0.99) -> EpisodeBatch:
+                     gamma: float = 0.99, condition: np.ndarray | None = None) -> EpisodeBatch:
     """Run one episode in every world of ``sim`` and label it with the expert.
 
     Every POLICY agent follows the expert with probability ``beta`` per episode (a
     per-agent coin, so rounds mix expert and policy agents in the same worlds) and its
-    own sampled action otherwise. Conditions are drawn from p_train per agent.
+    own sampled action otherwise. Conditions are drawn from p_train per agent, or are the
+    fixed raw ``condition`` (10,) for every agent when one is given.
     """
     W, A = sim.num_worlds, sim.max_agents
     N = W * A
     pool = rng.integers(0, sim.num_scenarios, size=W)
-    sim.reset(scenario_index=pool, conditions=sample_conditions(rng, (W, A)))
+    conds = sample_conditions(rng, (W, A)) if condition is None else np.broadcast_to(condition, (W, A, len(condition)))
+    sim.reset(scenario_index=pool, conditions=conds)
     T = sim.config.episode_steps
     device = policy.device
     states = zero_states(policy, N, device)
@@ -243,6 +245,8 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         raise ValueError(f"model: observation shape {model.observation_space.shape} does not match the "
                          f"simulator's ({sim.obs_layout.size},)")
     expert = make_expert(cfg.teacher, sim)
+    # an env trained under one fixed condition imitates under that condition too
+    fixed = getattr(inner, "fixed_condition", None)
     rng = np.random.default_rng(seed)
     policy = model.policy
     optimizer = th.optim.Adam(policy.parameters(), lr=cfg.learning_rate)
@@ -253,7 +257,7 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         t0 = time.perf_counter()
         beta = cfg.beta * cfg.decay ** it
         policy.set_training_mode(False)
-        new = [collect_episodes(policy, sim, expert, beta, rng, cfg.gamma) for _ in range(cfg.episodes)]
+        new = [collect_episodes(policy, sim, expert, beta, rng, cfg.gamma, fixed) for _ in range(cfg.episodes)]
         data.extend(new)
         data = data[-cfg.keep_rounds * cfg.episodes:]
         agreement = float(np.mean([b.agreement for b in new]))

@@ -75,9 +75,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "aggressive) or 10 comma-separated raw values; it sets the style fields only, "
                         "the goal test is the same for every condition (2 m, no speed limit)")
     p.add_argument("--traffic-policy", default=None,
-                   help="co-player checkpoint for selfplay / aggressive / normal / cautious / mix "
+                   help="co-player checkpoint for aggressive / normal / cautious / mix "
                         "(default zoo/anchor.zip, the shipped self-play anchor)")
     p.add_argument("--bc-policy", default=None, help="BC traffic model for 'bc' (default zoo/bc_traffic.pt)")
+    p.add_argument("--ppo-policy", default=None,
+                   help="self-play PPO co-player checkpoint for 'selfplay' (default zoo/ppo_traffic.zip; "
+                        "without it the --traffic-policy under p_train conditions)")
     p.add_argument("--reference", default=None, help="label of the outcome analysis' reference (default first)")
     p.add_argument("--out", required=True, help="results folder (replaced atomically)")
     p.add_argument("--seed", type=int, default=0)
@@ -114,7 +117,8 @@ def run(argv: Sequence[str] | None = None) -> dict:
     tasks = R.make_tasks(args.pool, args.split, args.n, seed=args.seed, pool_size=args.pool_size)
     cfg = R.EvalConfig(deploy_condition=deploy, max_worlds=args.max_worlds, max_agents=args.max_agents,
                        seed=args.seed, device=args.device, progress=not args.no_progress)
-    ev = R.Evaluator(tasks, regimes, traffic_policy=args.traffic_policy, bc_policy=args.bc_policy, config=cfg)
+    ev = R.Evaluator(tasks, regimes, traffic_policy=args.traffic_policy, bc_policy=args.bc_policy,
+                     ppo_policy=args.ppo_policy, config=cfg)
     for e in egos:  # observation layout of every checkpoint, before any run
         if e.controller == R._POLICY:
             R.check_obs_size(e, ev.obs_size, f"--policy {e.checkpoint or e.label!r}")
@@ -128,6 +132,7 @@ def run(argv: Sequence[str] | None = None) -> dict:
         "pool": str(args.pool), "split": args.split, "n": args.n, "seed": args.seed,
         "deploy": deploy if isinstance(deploy, str) else list(deploy), "regimes": regimes,
         "traffic_policy": args.traffic_policy, "bc_policy": args.bc_policy,
+        "ppo_policy": args.ppo_policy or (str(R.DEFAULT_PPO_PATH) if R.DEFAULT_PPO_PATH.is_file() else None),
         "policies": [{"label": r.label, "checkpoint": r.checkpoint, **r.meta} for r in results],
     }
     scenarios = {t.scenario_id: t.scenario for t in tasks}

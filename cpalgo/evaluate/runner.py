@@ -16,8 +16,10 @@ Regimes (:data:`REGIMES`, BehaviorBench's eight):
 
 ============== ===================================================================
 idm            co-players follow their logged routes with IDM
-selfplay       co-players driven by the self-play policy (``traffic_policy``) under
-               conditions drawn from p_train at reset
+selfplay       co-players driven by the separately trained self-play PPO policy
+               (``ppo_policy``, default ``zoo/ppo_traffic.zip``, unconditioned: it sees
+               the normal profile); without one, by ``traffic_policy`` under conditions
+               drawn from p_train at reset
 bc             co-players driven by the behaviour-cloning log-imitation model
                (``bc_policy``, default ``zoo/bc_traffic.pt``), stands in for SMART
 replay         expert log replay
@@ -41,7 +43,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from cpalgo.evaluate import metrics as M
-from cpalgo.recipes import resolve_path, shipped_path
+from cpalgo.recipes import resolve_path, shipped_names, shipped_path
 from cpsim.arrays import to_numpy as _np
 from cpsim.conditions import deployment_condition
 from cpsim.config import Controller, Outcome
@@ -63,6 +65,9 @@ EGO_CONTROLLERS: dict[str, int] = {"replay": int(Controller.REPLAY), "expert": i
 DEFAULT_BC_PATH = shipped_path("bc_traffic.pt")
 #: The shipped reward-conditioned self-play anchor: default co-player of the policy regimes.
 DEFAULT_TRAFFIC_PATH = shipped_path("anchor.zip")
+#: The shipped self-play PPO policy (another recipe and seed than the anchor, trained under one
+#: fixed condition): default co-player of the ``selfplay`` (PPO) regime.
+DEFAULT_PPO_PATH = shipped_path("ppo_traffic.zip") if "ppo_traffic.zip" in shipped_names() else Path("zoo/ppo_traffic.zip")
 #: Agent slots per world by default: every agent present at t0, up to BehaviorBench's 128.
 MAX_EVAL_AGENTS = 128
 
@@ -445,14 +450,17 @@ class Evaluator:
     Args:
         tasks: from :func:`make_tasks` (or any list of :class:`Task`).
         regimes: regime names (:data:`REGIMES` by default).
-        traffic_policy: model (or checkpoint path) driving co-players in ``selfplay``,
-            ``aggressive``, ``normal``, ``cautious`` and ``mix``; needed only for those.
+        traffic_policy: model (or checkpoint path) driving co-players in ``aggressive``,
+            ``normal``, ``cautious`` and ``mix`` (and ``selfplay`` when there is no PPO
+            policy); needed only for those.
+        ppo_policy: model or checkpoint path for ``selfplay``, driven under the normal
+            profile (default :data:`DEFAULT_PPO_PATH` when it exists).
         bc_policy: model or ``.pt`` path for ``bc`` (default :data:`DEFAULT_BC_PATH`).
         config: :class:`EvalConfig`; ``sim_config``: a ``cpsim.SimConfig``.
     """
 
     def __init__(self, tasks: Sequence[Task], regimes: Sequence[str] = REGIMES, *,
-                 traffic_policy: Any = None, bc_policy: Any = None,
+                 traffic_policy: Any = None, bc_policy: Any = None, ppo_policy: Any = None,
                  config: EvalConfig | None = None, sim_config: Any = None):
         self.config = config or EvalConfig()
         self.tasks = list(tasks)
@@ -466,7 +474,15 @@ class Evaluator:
         self.deploy = deployment_condition(
             self.config.deploy_condition if isinstance(self.config.deploy_condition, str)
             else np.asarray(self.config.deploy_condition, np.float32), "deploy_condition")
-        needs_traffic = {"selfplay", "aggressive", "normal", "cautious", "mix"} & set(self.regimes)
+        if "selfplay" in self.regimes:
+            if ppo_policy is None and DEFAULT_PPO_PATH.is_file():
+                ppo_policy = DEFAULT_PPO_PATH
+            if isinstance(ppo_policy, (str, os.PathLike)):
+                ppo_policy = load_model(ppo_policy, "ppo_policy")
+        self.ppo_policy = ppo_policy
+        needs_traffic = {"aggressive", "normal", "cautious", "mix"} & set(self.regimes)
+        if "selfplay" in self.regimes and ppo_policy is None:
+            needs_traffic.add("selfplay")
         if isinstance(traffic_policy, (str, os.PathLike)):
             traffic_policy = load_model(traffic_policy, "traffic_policy")
         if needs_traffic and traffic_policy is None and DEFAULT_TRAFFIC_PATH.is_file():
@@ -508,7 +524,8 @@ class Evaluator:
         self.sim = cpsim.Simulator(self.scenarios, num_worlds=self.num_worlds, max_agents=max_agents,
                                    device=self.config.device, seed=self.config.seed, **kwargs)
         self.obs_size = int(self.sim.obs_layout.size)
-        for model, arg in ((self.traffic_policy, "traffic_policy"), (self.bc_policy, "bc_policy")):
+        for model, arg in ((self.traffic_policy, "traffic_policy"), (self.bc_policy, "bc_policy"),
+                           (self.ppo_policy, "ppo_policy")):
             if model is not None:
                 check_obs_size(model, self.obs_size, arg)
         # per-scenario vehicle table (co-player harm counts vehicles only)
@@ -530,6 +547,8 @@ class Evaluator:
             seed = self.config.seed + i
             if regime == "bc":
                 drv = TrafficDriver("policy", self.bc_policy, condition="normal", seed=seed, coplayers=rule)
+            elif regime == "selfplay" and self.ppo_policy is not None:
+                drv = TrafficDriver("policy", self.ppo_policy, condition="normal", seed=seed, coplayers=rule)
             elif regime == "selfplay":
                 drv = TrafficDriver("policy", self.traffic_policy, seed=seed, coplayers=rule)
             elif regime in ("aggressive", "normal", "cautious", "mix"):

@@ -238,6 +238,30 @@ def test_sb3_checkpoint_ego_and_traffic_in_every_regime(tasks, tmp_path):
         R.Evaluator(two, ["bc"], bc_policy=small)
 
 
+def test_selfplay_regime_uses_the_separate_ppo_policy(tasks, tmp_path, monkeypatch):
+    """The PPO column is a separately trained policy under the normal profile; without one
+    the anchor (traffic policy) under p_train conditions stands in."""
+    import cpsim
+
+    class Policy:
+        observation_space = None
+
+        def predict(self, obs, state=None, episode_start=None, deterministic=True):
+            return np.zeros(len(obs), np.int64), None
+
+    anchor, ppo = Policy(), Policy()
+    ev = R.Evaluator(tasks[:1], ["selfplay", "normal"], traffic_policy=anchor, ppo_policy=ppo,
+                     config=R.EvalConfig(progress=False))
+    sp = ev._drivers["selfplay"]
+    assert sp.model is ppo and np.array_equal(sp.condition, cpsim.profile("normal"))
+    assert ev._drivers["normal"].model is anchor
+    monkeypatch.setattr(R, "DEFAULT_PPO_PATH", tmp_path / "no-ppo.zip")
+    ev = R.Evaluator(tasks[:1], ["selfplay"], traffic_policy=anchor, config=R.EvalConfig(progress=False))
+    assert ev._drivers["selfplay"].model is anchor and ev._drivers["selfplay"].condition is None
+    with pytest.raises(ValueError, match="ppo_policy: checkpoint"):
+        R.Evaluator(tasks[:1], ["selfplay"], ppo_policy=tmp_path / "missing.zip")
+
+
 # ----------------------------------------------------------------------------- co-players (issue 17, item 10)
 def with_extra_agents(sc, parked: int, sid: str):
     """``sc`` plus ``parked`` parked vehicles (goal = their t0 position) in a row 300 m away,
