@@ -9,6 +9,12 @@
 * :mod:`~cpsim.kernels.observation`: the observation kernel.
 * :mod:`~cpsim.kernels.snapshot`: reset and world copies (snapshot / restore).
 
+Each kernel's docstring ends with ``Reads:`` / ``Writes:`` lines: the fields of its
+:class:`cpsim.state.State` argument it reads and writes (through the ``@wp.func`` helpers it
+calls too; ``*`` every field, ``-`` none), the order constraints between the launches of a
+step at a glance. ``tests/cpsim/test_kernel_contracts.py`` derives both lists from the source
+and fails when a docstring falls behind.
+
 Importing this package registers every kernel; :func:`load` compiles (or loads from the
 kernel cache) the module for a device up front.
 """

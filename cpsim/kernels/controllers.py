@@ -131,7 +131,11 @@ def path_crossing(m: ModelArrays, row: int, q0: wp.vec2f, q1: wp.vec2f, k_from: 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def idm_kernel(state: State, model: ModelArrays, params: Params):
-    """IDM acceleration of every live IDM agent from the current poses (over (W, A))."""
+    """IDM acceleration of every live IDM agent from the current poses (over (W, A)).
+
+    Reads: agent_row, alive, controller, heading, idm_k, idm_s, pos, size, speed, step_count, vel
+    Writes: idm_accel
+    """
     w, a = wp.tid()
     if state.step_count[w] >= params.episode_steps or not state.alive[w, a] or state.controller[w, a] != IDM:
         return
@@ -205,7 +209,11 @@ def idm_kernel(state: State, model: ModelArrays, params: Params):
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def idm_attach_kernel(state: State, model: ModelArrays, worlds: wp.array(dtype=wp.int32),
                       attach: wp.array2d(dtype=wp.bool)):
-    """Put agents newly switched to IDM on their path at the nearest point (over (n, A))."""
+    """Put agents newly switched to IDM on their path at the nearest point (over (n, A)).
+
+    Reads: agent_row, pos
+    Writes: idm_k, idm_s
+    """
     i, a = wp.tid()
     w = worlds[i]
     if not attach[i, a] or state.agent_row[w, a] < 0:

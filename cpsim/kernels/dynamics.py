@@ -159,6 +159,11 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
     Also clears last step's done flags, stores the previous pose (swept off-road test) and
     sets ``present``. Replayed agents whose log becomes invalid vanish here (alive False,
     done and truncated). Worlds whose episode is over are left unchanged.
+
+    Reads: accel, agent_row, alive, controller, heading, idm_accel, idm_k, idm_s, lat_accel, pos, size, speed,
+        steer, step_count, vel
+    Writes: accel, alive, done, finished, heading, idm_k, idm_s, jerk, lat_accel, lat_jerk, pos, pos_hist,
+        present, prev_heading, prev_pos, prev_vel, speed, steer, terminated, truncated, vel
     """
     w, a = wp.tid()
     state.done[w, a] = False

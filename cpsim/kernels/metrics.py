@@ -133,7 +133,11 @@ def replay_pose(m: ModelArrays, row: int, t: int, p: wp.vec2f, h: float, prev_p:
 def replay_offroad_kernel(model: ModelArrays, box_scale: float, out: wp.array2d(dtype=wp.bool)):
     """out[row, t] = the off-road test of ``agent_events`` for a vehicle moving from log step
     t-1 to log step t of row ``row`` (False at t = 0 and for other agent types); over (L, T).
-    Built once per Model: replayed agents (most of a WOMD scene) then skip the test."""
+    Built once per Model: replayed agents (most of a WOMD scene) then skip the test.
+
+    Reads: -
+    Writes: -
+    """
     row, t = wp.tid()
     hit = bool(False)
     if t > 0 and model.agent_type[row] == VEHICLE:
@@ -154,7 +158,16 @@ def events_kernel(state: State, model: ModelArrays, params: Params, track_all: i
                   trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                   present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                   roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
-    """:func:`agent_events` over (W, A), one thread per agent (CUDA)."""
+    """:func:`agent_events` over (W, A), one thread per agent (CUDA).
+
+    Reads: accel, agent_index, agent_row, agent_type, aligned_steps, comfort_violations, conditions, controller,
+        finished, first_collision_step, first_offroad_step, goal, goal_step, heading, jerk, lat_accel,
+        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, present, prev_heading, prev_pos, prev_vel,
+        scenario, size, speed, step_count, steps_alive, task_agent
+    Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
+        first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
+        lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
+    """
     w, a = wp.tid()
     agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius, w, a)
 
@@ -166,7 +179,16 @@ def events_world_kernel(state: State, model: ModelArrays, params: Params, track_
                         roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
     """:func:`agent_events` over W, one thread per world looping over its slots (CPU: a CPU
     thread copies the kernel's State / ModelArrays arguments on entry, about 60 ns, so one
-    entry per world instead of per slot; same order, same results as :func:`events_kernel`)."""
+    entry per world instead of per slot; same order, same results as :func:`events_kernel`).
+
+    Reads: accel, agent_index, agent_row, agent_type, aligned_steps, comfort_violations, conditions, controller,
+        finished, first_collision_step, first_offroad_step, goal, goal_step, heading, jerk, lat_accel,
+        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, present, prev_heading, prev_pos, prev_vel,
+        scenario, size, speed, step_count, steps_alive, task_agent
+    Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
+        first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
+        lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
+    """
     w = wp.tid()
     for a in range(state.present.shape[1]):
         agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius,
@@ -362,7 +384,11 @@ def agent_events(state: State, model: ModelArrays, params: Params, track_all: in
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def finish_kernel(state: State, params: Params, worlds: wp.array(dtype=wp.int32), advance: int):
-    """Advance the step counter (when ``advance``) and set world_done (over len(worlds))."""
+    """Advance the step counter (when ``advance``) and set world_done (over len(worlds)).
+
+    Reads: alive, controller, step_count
+    Writes: step_count, world_done
+    """
     i = wp.tid()
     w = worlds[i]
     if state.step_count[w] >= params.episode_steps:

@@ -47,7 +47,11 @@ def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2
     (the (cos, sin) of its heading before the motion), ``trig`` <- (cos, sin) of its heading
     now and ``radius`` <- the half-diagonal of its box scaled by ``box_scale`` (the collision
     pre-filter); ``present_idx[w, :n]`` lists the present slots and ``tracked_idx[w, :m]`` the
-    present tracked ones (:func:`tracked_role`), both in slot order; ``roster_n[w]`` = (n, m)."""
+    present tracked ones (:func:`tracked_role`), both in slot order; ``roster_n[w]`` = (n, m).
+
+    Reads: controller, finished, heading, present, size, task_agent
+    Writes: -
+    """
     w = wp.tid()
     n = int(0)
     m = int(0)
@@ -72,7 +76,11 @@ def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def heading_trig_kernel(state: State, worlds: wp.array(dtype=wp.int32), trig: wp.array2d(dtype=wp.vec2f)):
-    """trig[w, a] = (cos, sin) of every heading (a pre-pass: partners reuse them, over (n, A))."""
+    """trig[w, a] = (cos, sin) of every heading (a pre-pass: partners reuse them, over (n, A)).
+
+    Reads: heading
+    Writes: -
+    """
     i, a = wp.tid()
     w = worlds[i]
     h = state.heading[w, a]
@@ -86,7 +94,13 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
                        obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32),
                        trig: wp.array2d(dtype=wp.vec2f), force: int):
     """:func:`observe_agent` for the worlds listed in ``worlds``, over (len(worlds), A): one
-    thread per agent (CUDA)."""
+    thread per agent (CUDA).
+
+    Reads: accel, agent_type, alive, conditions, controller, first_collision_step, first_offroad_step, goal,
+        has_lane, lane_err, lane_offset, lat_accel, pos, scenario, size, speed, steer, step_count,
+        task_agent, vel
+    Writes: -
+    """
     i, a = wp.tid()
     observe_agent(state, model, params, worlds[i], a, obs, sel_idx, sel_d2, obs_clear, filled, trig, force)
 
@@ -99,7 +113,13 @@ def observation_world_kernel(state: State, model: ModelArrays, params: Params,
                              trig: wp.array2d(dtype=wp.vec2f), force: int):
     """:func:`observe_agent` for the worlds listed in ``worlds``, over len(worlds): one thread
     per world looping over its slots (CPU: fewer copies of the State / ModelArrays arguments,
-    which a CPU thread makes on entry; same order and results as ``observation_kernel``)."""
+    which a CPU thread makes on entry; same order and results as ``observation_kernel``).
+
+    Reads: accel, agent_type, alive, conditions, controller, first_collision_step, first_offroad_step, goal,
+        has_lane, lane_err, lane_offset, lat_accel, pos, scenario, size, speed, steer, step_count,
+        task_agent, vel
+    Writes: -
+    """
     i = wp.tid()
     w = worlds[i]
     for a in range(obs.shape[1]):

@@ -27,7 +27,11 @@ from cpsim.state import State
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32),
                        dst_idx: wp.array(dtype=wp.int32)):
-    """dst world dst_idx[i] <- src world src_idx[i], every field (over (n, A))."""
+    """dst world dst_idx[i] <- src world src_idx[i], every field (over (n, A)).
+
+    Reads: src.*
+    Writes: dst.*
+    """
     i, a = wp.tid()
     s = src_idx[i]
     d = dst_idx[i]
@@ -95,7 +99,11 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
     """Initialise world worlds[i] with pool scenario g = scenario[i]; slot a holds scenario
     agent slot_table[g, a] (-1 empty) driven by ctrl_table[g, a]; task_table[g, a] marks the
     controllable agents; conditions[i, a] are its raw conditions; trig[w, a] gets the (cos, sin)
-    of the heading (over (n, A)). The lane fields are computed for tracked agents only."""
+    of the heading (over (n, A)). The lane fields are computed for tracked agents only.
+
+    Reads: -
+    Writes: *
+    """
     i, a = wp.tid()
     w = worlds[i]
     g = scenario[i]
