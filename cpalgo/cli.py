@@ -463,8 +463,8 @@ def cmd_outcomes(args: argparse.Namespace) -> int:
         rates = _outcomes(model, args.tasks, args.max_agents, args.condition)
     print(rates)
     out = Path(args.out)
-    model_name = f"expert ({args.teacher})" if args.model == "expert" else path
-    _write_json(out, {"model": model_name, "condition": args.condition,
+    extra = {"teacher": args.teacher} if args.model == "expert" else {}
+    _write_json(out, {"model": args.model if args.model == "expert" else path, **extra, "condition": args.condition,
                       "tasks": args.tasks, "max_agents": args.max_agents, "outcomes": rates.as_dict()})
     print(f"written to {out}")
     return 0
