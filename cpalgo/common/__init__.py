@@ -1,1 +1,1 @@
-"""Helpers shared by the cpalgo algorithms (masked rollout buffer, policy forward passes)."""
+"""Helpers shared by the cpalgo algorithms (masked rollout buffer, the PPO update, policy forward passes)."""

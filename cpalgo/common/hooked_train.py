@@ -2,9 +2,9 @@
 
 :class:`HookedPPO` is PPO-Continue (:class:`cpalgo.methods.base.BudgetedCounterPlay` with
 ``counterfactual=False``: factual self-play PPO, inactive slots masked, the equal-budget
-``learn``) whose update is a copy of CounterPlay's ``train`` (itself sb3-contrib 2.9.2's
-``RecurrentPPO.train``) with hook points, so a method changes its objective without copying
-the loop again:
+``learn``) whose update is CounterPlay's, the one PPO update of cpalgo
+(:mod:`cpalgo.common.ppo_update`, sb3-contrib 2.9.2's ``RecurrentPPO.train``), called with
+hooks, so a method changes its objective without copying the loop:
 
 * :meth:`HookedPPO._clip_bounds`: ``(low, high)`` of the ratio clip, ``ratio`` is clipped
   to ``[1 - low, 1 + high]`` (PPO: both ``clip_range``; DAPO: decoupled).
@@ -33,9 +33,9 @@ from typing import Any, ClassVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.utils import explained_variance
 
 from cpalgo.common.buffers import MaskedRecurrentRolloutBuffer, padded_sequencer
+from cpalgo.common.ppo_update import ScheduledTerms, begin_update, run_update
 from cpalgo.counterplay.algorithm import CounterPlay
 from cpalgo.methods.base import EqualBudgetMixin
 
@@ -224,141 +224,24 @@ class HookedPPO(EqualBudgetMixin, CounterPlay):
     def _after_train(self) -> None:
         """Called at the end of :meth:`train`."""
 
-    def _extra_schedule(self, total_updates: int) -> set[int]:
-        """Minibatch update indices (of this generation) that carry the generation terms."""
-        k = int(self.extra_minibatches)
-        if total_updates <= 0:
-            return set()
-        return set(np.linspace(0, total_updates - 1, min(k, total_updates)).round().astype(int).tolist())
-
     # ------------------------------------------------------------------ train
     def train(self) -> None:
-        """CounterPlay's masked PPO update (sb3-contrib's loop) with the hooks above."""
-        self.policy.set_training_mode(True)
-        self._update_learning_rate(self.policy.optimizer)
-        clip_range = self.clip_range(self._current_progress_remaining)
-        clip_low, clip_high = self._clip_bounds(clip_range)
-        if self.clip_range_vf is not None:
-            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)
-
-        entropy_losses, pg_losses, value_losses, clip_fractions = [], [], [], []
-        extra_logs: dict[str, list[float]] = {}
-        approx_kl_divs: list[float] = []
-        continue_training = True
-
-        extra_at: set[int] = set()
-        pending = 0
+        """The shared masked PPO update (:func:`cpalgo.common.ppo_update.run_update`, CounterPlay's)
+        with the hooks above; every extra term is logged as ``train/<name>`` (its mean)."""
+        clip_range, clip_range_vf = begin_update(self)
+        generation: list[ScheduledTerms] = []
         if self._has_generation_terms():
-            per_epoch = self.rollout_buffer.num_minibatches(self.batch_size)
-            extra_at = self._extra_schedule(self.n_epochs * per_epoch)
             # no minibatch at all: the terms still get their updates, on their own
-            pending = len(extra_at) if extra_at else int(self.extra_minibatches)
-        update = 0
-        loss = None
-
-        for epoch in range(self.n_epochs):
-            approx_kl_divs = []
-            for rollout_data in self.rollout_buffer.get(self.batch_size):
-                actions = rollout_data.actions.long().flatten()
-                mask = rollout_data.mask > 1e-8
-                with_extra = update in extra_at
-                update += 1
-                if not bool(mask.any()):
-                    continue
-
-                values, log_prob, entropy = self.policy.evaluate_actions(
-                    rollout_data.observations, actions, rollout_data.lstm_states, rollout_data.episode_starts,
-                )
-                # the shared action distribution: take its logits before anything else runs the policy
-                logits = self.policy.action_dist.distribution.logits
-                values = values.flatten()
-                advantages = rollout_data.advantages
-                if self.normalize_advantage:
-                    advantages = (advantages - advantages[mask].mean()) / (advantages[mask].std() + 1e-8)
-
-                ratio = th.exp(log_prob - rollout_data.old_log_prob)
-                policy_loss_1 = advantages * ratio
-                policy_loss_2 = advantages * th.clamp(ratio, 1 - clip_low, 1 + clip_high)
-                policy_loss = -th.mean(th.min(policy_loss_1, policy_loss_2)[mask])
-                pg_losses.append(policy_loss.item())
-                clipped = (ratio < 1 - clip_low) | (ratio > 1 + clip_high)
-                clip_fractions.append(th.mean(clipped.float()[mask]).item())
-
-                if self.clip_range_vf is None:
-                    values_pred = values
-                else:
-                    values_pred = rollout_data.old_values + th.clamp(
-                        values - rollout_data.old_values, -clip_range_vf, clip_range_vf
-                    )
-                value_loss = th.mean(((rollout_data.returns - values_pred) ** 2)[mask])
-                value_losses.append(value_loss.item())
-                entropy_loss = -th.mean(-log_prob[mask]) if entropy is None else -th.mean(entropy[mask])
-                entropy_losses.append(entropy_loss.item())
-
-                loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
-                terms = self._minibatch_terms(rollout_data, mask, logits)
-                if with_extra and pending > 0:
-                    terms = {**terms, **self._generation_terms(clip_range)}
-                for name, term in terms.items():
-                    loss = loss + term
-                    extra_logs.setdefault(name, []).append(float(term.item()))
-
-                with th.no_grad():
-                    log_ratio = log_prob - rollout_data.old_log_prob
-                    approx_kl_div = th.mean(((th.exp(log_ratio) - 1) - log_ratio)[mask]).cpu().numpy()
-                    approx_kl_divs.append(approx_kl_div)
-                if self.target_kl is not None and approx_kl_div > 1.5 * self.target_kl:
-                    continue_training = False
-                    if self.verbose >= 1:
-                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_div:.2f}")
-                    break
-
-                self.policy.optimizer.zero_grad()
-                loss.backward()
-                th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self.policy.optimizer.step()
-                if with_extra and pending > 0:
-                    pending -= 1
-
-            self._n_updates += 1
-            if not continue_training:
-                break
-
-        # generation terms that no minibatch carried: their own updates
-        while pending > 0 and self._has_generation_terms():
-            terms = self._generation_terms(clip_range)
-            if not terms:
-                break
-            total = sum(terms.values())
-            self.policy.optimizer.zero_grad()
-            total.backward()
-            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-            self.policy.optimizer.step()
-            for name, term in terms.items():
-                extra_logs.setdefault(name, []).append(float(term.item()))
-            pending -= 1
-
-        buffer_values = self.rollout_buffer.values.flatten()
-        buffer_returns = self.rollout_buffer.returns.flatten()
-        active = np.asarray(self.rollout_buffer.active).reshape(-1) > 0
-        buffer_values, buffer_returns = buffer_values[active], buffer_returns[active]
-        explained_var = explained_variance(buffer_values, buffer_returns) if buffer_values.size else float("nan")
-
-        self.logger.record("train/entropy_loss", float(np.mean(entropy_losses)) if entropy_losses else float("nan"))
-        self.logger.record("train/policy_gradient_loss", float(np.mean(pg_losses)) if pg_losses else float("nan"))
-        self.logger.record("train/value_loss", float(np.mean(value_losses)) if value_losses else float("nan"))
-        self.logger.record("train/approx_kl", float(np.mean(approx_kl_divs)) if approx_kl_divs else float("nan"))
-        self.logger.record("train/clip_fraction", float(np.mean(clip_fractions)) if clip_fractions else float("nan"))
-        if loss is not None:
-            self.logger.record("train/loss", loss.item())
-        self.logger.record("train/explained_variance", explained_var)
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/clip_range", clip_range)
-        if clip_low != clip_high:
-            self.logger.record("train/clip_low", clip_low)
-            self.logger.record("train/clip_high", clip_high)
-        if self.clip_range_vf is not None:
-            self.logger.record("train/clip_range_vf", clip_range_vf)
-        for name, values_ in extra_logs.items():
-            self.logger.record(f"train/{name}", float(np.mean(values_)))
+            generation = [ScheduledTerms(compute=lambda: self._generation_terms(clip_range),
+                                         minibatches=int(self.extra_minibatches),
+                                         owed_without_minibatches=int(self.extra_minibatches))]
+        log = run_update(self, clip_range, clip_range_vf, masked=self.mask_inactive,
+                         clip_bounds=self._clip_bounds(clip_range), minibatch_terms=self._minibatch_terms,
+                         scheduled=generation)
+        extra_logs = dict(log.term_logs)
+        for terms in generation:
+            for name, values in terms.logs.items():
+                extra_logs.setdefault(name, []).extend(values)
+        for name, values in extra_logs.items():
+            self.logger.record(f"train/{name}", float(np.mean(values)))
         self._after_train()

@@ -24,10 +24,11 @@ lives in :mod:`cpalgo.counterplay.driver`):
 7. **Live slots only**: inactive ``SelfPlayVecEnv`` slots are skipped by rollout inference
    and by every minibatch (:mod:`cpalgo.common.buffers`), and count in no budget.
 
-The rollout / train loops are copies of sb3-contrib 2.9.2's ``RecurrentPPO`` with hook
-points (their local variable names are kept for callbacks). With ``counterfactual=False``,
-``mask_inactive=False`` and sb3-contrib's policy class the computation is exactly the
-parent's: parameters after ``learn`` are bit-identical to ``RecurrentPPO`` (tested).
+The rollout loop is a copy of sb3-contrib 2.9.2's ``RecurrentPPO`` with hook points (its
+local variable names are kept for callbacks); the update is the one PPO update of cpalgo,
+:mod:`cpalgo.common.ppo_update`. With ``counterfactual=False``, ``mask_inactive=False`` and
+sb3-contrib's policy class the computation is exactly the parent's: parameters after
+``learn`` are bit-identical to ``RecurrentPPO`` (tested).
 """
 
 from __future__ import annotations
@@ -45,11 +46,12 @@ from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
-from stable_baselines3.common.utils import explained_variance, obs_as_tensor
+from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
 from cpalgo.common.buffers import MaskedRecurrentDictRolloutBuffer, MaskedRecurrentRolloutBuffer
 from cpalgo.common.policy_utils import put_states, take_states
+from cpalgo.common.ppo_update import ScheduledTerms, begin_update, run_update
 from cpalgo.common.progress import LearnProgressBar
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, collate_teachers, distill_loss
@@ -588,13 +590,6 @@ class CounterPlay(RecurrentPPO):
             self.logger.record(f"counterplay/budget_{key}", getattr(self.budget, key))
 
     # ================================================================== train
-    def _distill_schedule(self, total_updates: int) -> set[int]:
-        """Minibatch update indices (of this generation) that carry the distillation term."""
-        k = int(self.distill_minibatches)
-        if total_updates <= 0:
-            return set()
-        return set(np.linspace(0, total_updates - 1, min(k, total_updates)).round().astype(int).tolist())
-
     def _prepare_distillation(self) -> TeacherBatch | None:
         if not self._teachers or self.env is None or float(self.distill_coef) == 0.0:
             return None
@@ -605,171 +600,21 @@ class CounterPlay(RecurrentPPO):
         )
 
     def train(self) -> None:
-        """RecurrentPPO's update with masked inactive slots and the distillation term."""
-        # Switch to train mode (this affects batch norm / dropout)
-        self.policy.set_training_mode(True)
-        # Update optimizer learning rate
-        self._update_learning_rate(self.policy.optimizer)
-        # Compute current clip range
-        clip_range = self.clip_range(self._current_progress_remaining)
-        # Optional: clip range for the value function
-        if self.clip_range_vf is not None:
-            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)
-
-        entropy_losses = []
-        pg_losses, value_losses = [], []
-        clip_fractions = []
-
-        continue_training = True
-
+        """RecurrentPPO's update (:func:`cpalgo.common.ppo_update.run_update`) with masked
+        inactive slots and the distillation term: ``distill_coef`` x the distillation loss
+        of this generation's teachers on ``distill_minibatches`` minibatch updates; branch
+        data enters through this term only, never the PPO / value losses."""
+        clip_range, clip_range_vf = begin_update(self)
         distill_batch = self._prepare_distillation()
-        distill_losses: list[float] = []
-        distill_at: set[int] = set()
+        scheduled: list[ScheduledTerms] = []
         if distill_batch is not None:
-            per_epoch = self.rollout_buffer.num_minibatches(self.batch_size)
-            distill_at = self._distill_schedule(self.n_epochs * per_epoch)
             self._teachers = []
-        distill_pending = len(distill_at)
-        update = 0
-
-        # train for n_epochs epochs
-        for epoch in range(self.n_epochs):
-            approx_kl_divs = []
-            # Do a complete pass on the rollout buffer
-            for rollout_data in self.rollout_buffer.get(self.batch_size):
-                actions = rollout_data.actions
-                if isinstance(self.action_space, spaces.Discrete):
-                    # Convert discrete action from float to long
-                    actions = rollout_data.actions.long().flatten()
-
-                # Convert mask from float to bool
-                mask = rollout_data.mask > 1e-8
-                with_distill = update in distill_at
-                update += 1
-                if self.mask_inactive and not bool(mask.any()):
-                    # every transition of this minibatch is an inactive slot: nothing to learn
-                    continue
-
-                values, log_prob, entropy = self.policy.evaluate_actions(
-                    rollout_data.observations,
-                    actions,
-                    rollout_data.lstm_states,
-                    rollout_data.episode_starts,
-                )
-
-                values = values.flatten()
-                # Normalize advantage
-                advantages = rollout_data.advantages
-                if self.normalize_advantage:
-                    advantages = (advantages - advantages[mask].mean()) / (advantages[mask].std() + 1e-8)
-
-                # ratio between old and new policy, should be one at the first iteration
-                ratio = th.exp(log_prob - rollout_data.old_log_prob)
-
-                # clipped surrogate loss
-                policy_loss_1 = advantages * ratio
-                policy_loss_2 = advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)
-                policy_loss = -th.mean(th.min(policy_loss_1, policy_loss_2)[mask])
-
-                # Logging
-                pg_losses.append(policy_loss.item())
-                clip_fraction = th.mean((th.abs(ratio - 1) > clip_range).float()[mask]).item()
-                clip_fractions.append(clip_fraction)
-
-                if self.clip_range_vf is None:
-                    # No clipping
-                    values_pred = values
-                else:
-                    # Clip the different between old and new value
-                    # NOTE: this depends on the reward scaling
-                    values_pred = rollout_data.old_values + th.clamp(
-                        values - rollout_data.old_values, -clip_range_vf, clip_range_vf
-                    )
-                # Value loss using the TD(gae_lambda) target
-                # Mask padded sequences
-                value_loss = th.mean(((rollout_data.returns - values_pred) ** 2)[mask])
-
-                value_losses.append(value_loss.item())
-
-                # Entropy loss favor exploration
-                if entropy is None:
-                    # Approximate entropy when no analytical form
-                    entropy_loss = -th.mean(-log_prob[mask])
-                else:
-                    entropy_loss = -th.mean(entropy[mask])
-
-                entropy_losses.append(entropy_loss.item())
-
-                loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
-
-                if with_distill and distill_batch is not None:
-                    # branch data enters through this term only, never the PPO / value losses
-                    distill_term = distill_loss(self.policy, distill_batch, self.distill, clip_range)
-                    loss = loss + self.distill_coef * distill_term
-
-                # Calculate approximate form of reverse KL Divergence for early stopping
-                # see issue #417: https://github.com/DLR-RM/stable-baselines3/issues/417
-                # and discussion in PR #419: https://github.com/DLR-RM/stable-baselines3/pull/419
-                # and Schulman blog: http://joschu.net/blog/kl-approx.html
-                with th.no_grad():
-                    log_ratio = log_prob - rollout_data.old_log_prob
-                    approx_kl_div = th.mean(((th.exp(log_ratio) - 1) - log_ratio)[mask]).cpu().numpy()
-                    approx_kl_divs.append(approx_kl_div)
-
-                if self.target_kl is not None and approx_kl_div > 1.5 * self.target_kl:
-                    continue_training = False
-                    if self.verbose >= 1:
-                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_div:.2f}")
-                    break
-
-                # Optimization step
-                self.policy.optimizer.zero_grad()
-                loss.backward()
-                # Clip grad norm
-                th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self.policy.optimizer.step()
-                if with_distill and distill_batch is not None:
-                    distill_losses.append(distill_term.item())
-                    distill_pending -= 1
-
-            self._n_updates += 1
-            if not continue_training:
-                break
-
-        # distillation updates that did not happen inside PPO minibatches (early stop,
-        # skipped all-inactive minibatches): run them on their own
-        while distill_batch is not None and distill_pending > 0:
-            distill_term = distill_loss(self.policy, distill_batch, self.distill, clip_range)
-            self.policy.optimizer.zero_grad()
-            (self.distill_coef * distill_term).backward()
-            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-            self.policy.optimizer.step()
-            distill_losses.append(distill_term.item())
-            distill_pending -= 1
-
-        buffer_values = self.rollout_buffer.values.flatten()
-        buffer_returns = self.rollout_buffer.returns.flatten()
-        if self.mask_inactive:
-            active = np.asarray(self.rollout_buffer.active).reshape(-1) > 0
-            buffer_values, buffer_returns = buffer_values[active], buffer_returns[active]
-        explained_var = explained_variance(buffer_values, buffer_returns) if buffer_values.size else float("nan")
-
-        # Logs
-        self.logger.record("train/entropy_loss", np.mean(entropy_losses))
-        self.logger.record("train/policy_gradient_loss", np.mean(pg_losses))
-        self.logger.record("train/value_loss", np.mean(value_losses))
-        self.logger.record("train/approx_kl", np.mean(approx_kl_divs))
-        self.logger.record("train/clip_fraction", np.mean(clip_fractions))
-        if pg_losses:
-            self.logger.record("train/loss", loss.item())
-        self.logger.record("train/explained_variance", explained_var)
-        if hasattr(self.policy, "log_std"):
-            self.logger.record("train/std", th.exp(self.policy.log_std).mean().item())
-
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/clip_range", clip_range)
-        if self.clip_range_vf is not None:
-            self.logger.record("train/clip_range_vf", clip_range_vf)
+            scheduled = [ScheduledTerms(
+                compute=lambda: {"distill": distill_loss(self.policy, distill_batch, self.distill, clip_range)},
+                minibatches=int(self.distill_minibatches), weight=self.distill_coef,
+            )]
+        run_update(self, clip_range, clip_range_vf, masked=self.mask_inactive, scheduled=scheduled)
         if distill_batch is not None:
-            self.logger.record(f"counterplay/distill_{self.distill}", float(np.mean(distill_losses)) if distill_losses else float("nan"))
+            losses = scheduled[0].logs.get("distill", [])
+            self.logger.record(f"counterplay/distill_{self.distill}", float(np.mean(losses)) if losses else float("nan"))
             self.logger.record("counterplay/distill_teachers", distill_batch.num_teachers)
