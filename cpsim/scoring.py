@@ -34,6 +34,11 @@ COMFORT_CHECKS_PER_STEP = 3
 LANE_CENTER_CLAMP = 2.0
 #: Score weights (comfort, lane_align, lane_center), the seed paper's.
 SCORE_WEIGHTS = (0.2, 0.5, 0.3)
+#: Lateral distance (m) the lane query records when the scenario's map holds no lane at all
+#: (lane_center is 0 then). The one source of this value: the simulator's Warp lane query
+#: (``cpsim.kernels.geometry``, through a Warp constant built from it), its NumPy reference
+#: and the evaluation (``cpalgo.evaluate.metrics``).
+NO_LANE_DISTANCE = 1000.0
 
 
 def _as_float(x: np.ndarray | float, name: str) -> np.ndarray:

@@ -31,6 +31,7 @@ import numpy as np
 # the per-episode scores live with the simulator (the env infos report them too); re-exported
 from cpsim.scoring import COMFORT_CHECKS_PER_STEP as COMFORT_CHECKS_PER_STEP
 from cpsim.scoring import LANE_CENTER_CLAMP as LANE_CENTER_CLAMP
+from cpsim.scoring import NO_LANE_DISTANCE as NO_LANE_DISTANCE
 from cpsim.scoring import SCORE_WEIGHTS as SCORE_WEIGHTS
 from cpsim.scoring import count_comfort_violations
 from cpsim.scoring import episode_scores as episode_scores
@@ -44,7 +45,6 @@ from cpsim.scoring import task_score as task_score
 #: distance whatever the radius (NO_LANE_DISTANCE only when a map has no lane at all).
 LANE_SEARCH_RADIUS = 4.0
 ALIGN_MAX_HEADING_ERROR_DEG = 15.0
-NO_LANE_DISTANCE = 1000.0
 
 
 class OutcomeClass(IntEnum):

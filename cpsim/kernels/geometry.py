@@ -49,6 +49,7 @@ import numpy as np
 import warp as wp
 
 from cpsim.model import ModelArrays
+from cpsim.scoring import NO_LANE_DISTANCE
 
 PI = wp.constant(math.pi)
 TWO_PI = wp.constant(2.0 * math.pi)
@@ -62,14 +63,13 @@ FRONT_CLOSING_SPEED = 0.5
 DIVIDER_REACH = 1.75
 DIVIDER_DRIFT = 0.3
 DIVIDER_POSITIONS = 4
-#: Distance recorded by :func:`lane_distance` when the scenario's grid holds no lane at all, m.
-NO_LANE_DISTANCE = 1000.0
 WP_STOPPED_SPEED = wp.constant(STOPPED_SPEED)
 WP_COS_BEHIND = wp.constant(math.cos(math.radians(BEHIND_DEG)))
 WP_COS_FRONT = wp.constant(math.cos(math.radians(FRONT_DEG)))
 WP_FRONT_CLOSING = wp.constant(FRONT_CLOSING_SPEED)
 WP_DIVIDER_REACH = wp.constant(DIVIDER_REACH)
 WP_DIVIDER_DRIFT = wp.constant(DIVIDER_DRIFT)
+#: :data:`cpsim.scoring.NO_LANE_DISTANCE` (m), what :func:`lane_distance` records when the grid holds no lane
 WP_NO_LANE_DISTANCE = wp.constant(NO_LANE_DISTANCE)
 
 #: Collision cases (the codes of the module docstring's table; ``collision_kind`` returns
