@@ -345,10 +345,32 @@ class Model:
         return h.hexdigest()
 
     def _build_host(self) -> None:
+        """Build :attr:`host` (the NumPy arrays :meth:`_upload` sends to the device: agents and
+        logs, road segments, grids and candidate lists), :attr:`slot_order` /
+        :attr:`slot_controllable` and the pool-wide bounds ``max_half_diagonal``,
+        ``max_log_speed`` and ``edge_margin``."""
+        self.slot_order: list[np.ndarray] = []
+        self.slot_controllable: list[np.ndarray] = []
+        for sc in self.scenarios:
+            order, ctrl = self._slot_order(sc)
+            self.slot_order.append(order)
+            self.slot_controllable.append(ctrl)
+        agents = self._agent_arrays()
         cfg = self.config
+        # reach of a box from its cell within one step: half-diagonal x box_scale + one step of motion
+        max_step = cfg.dt * max(self.max_log_speed, 100.0 if cfg.dynamics == "classic" else 20.0) + 0.5
+        self.edge_margin = self.max_half_diagonal * cfg.box_scale + max_step
+        self.host: dict[str, np.ndarray] = {**self._road_arrays(), **agents}
+
+    def _agent_arrays(self) -> dict[str, np.ndarray]:
+        """The agent rows of the pool (L = all agents of all scenarios, T steps), as host
+        arrays: ``agent_first`` (G + 1,) first row of each scenario, ``agent_scenario`` (L,),
+        ``slot_count`` (G,) slots of each scenario (:attr:`slot_order`, built before),
+        the logs ``log_xy`` (L, T, 2) m, ``log_heading`` (L, T) rad, ``log_vel`` (L, T, 2) m/s
+        (0 at invalid steps), ``log_valid`` (L, T), ``size`` (L, 2) m, ``agent_type`` (L,),
+        ``goal`` (L, 2) m, and the compressed paths of :meth:`_paths` (``path_*``,
+        ``idm_v0`` m/s). Sets ``max_half_diagonal`` (m) and ``max_log_speed`` (m/s)."""
         scs = self.scenarios
-        G = len(scs)
-        # ---- agents / logs
         n_agents = np.array([sc.num_agents for sc in scs], np.int64)
         agent_first = np.concatenate([[0], np.cumsum(n_agents)]).astype(np.int32)
         log_xy = np.concatenate([sc.log_xy for sc in scs]).astype(np.float32)
@@ -366,19 +388,24 @@ class Model:
         self.max_half_diagonal = float(0.5 * np.sqrt((sizes ** 2).sum(1)).max())
         speeds = np.linalg.norm(log_vel, axis=-1)
         self.max_log_speed = float(speeds[log_valid].max()) if log_valid.any() else 0.0
+        return {
+            "agent_first": agent_first,
+            "agent_scenario": np.repeat(np.arange(len(scs), dtype=np.int32), n_agents).astype(np.int32),
+            "slot_count": np.array([o.size for o in self.slot_order], np.int32),
+            "log_xy": log_xy, "log_heading": log_heading, "log_vel": log_vel, "log_valid": log_valid,
+            "size": sizes, "agent_type": types, "goal": goals, "idm_v0": v0,
+            "path_xy": path_xy, "path_s": path_s, "path_h": path_h, "path_n": path_n,
+        }
 
-        # ---- slot order per scenario
-        self.slot_order: list[np.ndarray] = []
-        self.slot_controllable: list[np.ndarray] = []
-        for sc in scs:
-            order, ctrl = self._slot_order(sc)
-            self.slot_order.append(order)
-            self.slot_controllable.append(ctrl)
-
-        # ---- roads and grids
-        max_step = cfg.dt * max(self.max_log_speed, 100.0 if cfg.dynamics == "classic" else 20.0) + 0.5
-        edge_margin = self.max_half_diagonal * cfg.box_scale + max_step
-        self.edge_margin = edge_margin
+    def _road_arrays(self) -> dict[str, np.ndarray]:
+        """The road segments of the pool (S, all scenarios, global ids) and every scenario's
+        grid, as host arrays: ``seg_a`` / ``seg_b`` / ``seg_mid`` (S, 2) m, ``seg_dir`` (S, 2)
+        unit, ``seg_len`` (S,) m, ``seg_type`` / ``seg_poly`` (S,); ``grid_origin`` (G, 2) m,
+        ``grid_dims`` (G, 2) cells, ``grid_cell`` (G,) m, ``grid_first`` (G,) first global
+        cell; and the three candidate lists per cell in CSR form (``obs_*``, ``lane_*``,
+        ``edge_*``: ``*_start`` (cells + 1,), ``*_items`` global segment ids)."""
+        cfg = self.config
+        G = len(self.scenarios)
         seg_a, seg_b, seg_t, seg_p = [], [], [], []
         grid_origin, grid_dims, grid_cell, grid_first = [], [], [], []
         obs_rows: list[np.ndarray] = []
@@ -387,41 +414,20 @@ class Model:
         seg_offset = 0
         poly_offset = 0
         cell_offset = 0
-        for sc in scs:
+        for sc in self.scenarios:
             a, b, t, p = scenario_segments(sc, cfg.road_simplify_tol, cfg.road_max_segment)
             info = self._grid_info(sc, a, b)
             nx, ny = info.dims
             ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
             # cell id = iy * nx + ix  (row-major over y)
             centres = info.origin + (np.stack([ix.ravel(), iy.ravel()], 1) + 0.5) * info.cell
-            half_diag = info.cell * np.sqrt(0.5)
-            mids = 0.5 * (a + b)
-            lane_ids = np.flatnonzero(t == RoadType.LANE)
-            edge_ids = np.flatnonzero(t == RoadType.ROAD_EDGE)
-            C = centres.shape[0]
-            chunk = max(1, 2_000_000 // max(a.shape[0], 1))
-            M = cfg.num_road
-            for c0 in range(0, C, chunk):
-                cc = centres[c0:c0 + chunk]
-                # observation candidates: nearest midpoints to the cell centre
-                dm = np.sqrt(((cc[:, None, :] - mids[None]) ** 2).sum(-1))
-                if M > 0:
-                    if dm.shape[1] > M:
-                        part = np.argpartition(dm, M - 1, axis=1)[:, :M]
-                    else:
-                        part = np.broadcast_to(np.arange(dm.shape[1]), dm.shape).copy()
-                    dpart = np.take_along_axis(dm, part, axis=1)
-                    order = np.argsort(dpart, axis=1, kind="stable")
-                    part = np.take_along_axis(part, order, axis=1)
-                    dpart = np.take_along_axis(dpart, order, axis=1)
-                    inside = dpart <= cfg.road_radius + half_diag
-                    for r in range(cc.shape[0]):
-                        obs_rows.append(part[r][inside[r]] + seg_offset)
-                else:
-                    obs_rows.extend(np.zeros(0, np.int64) for _ in range(cc.shape[0]))
+            obs_rows.extend(r + seg_offset for r in self._observed_rows(centres, info.cell, a, b))
             # lane / road-edge candidates: near each segment only (same lists as the full
             # cell x segment distance matrix, a fraction of its cost on large maps)
-            for ids, radius, rows in ((lane_ids, cfg.lane_radius, lane_rows), (edge_ids, edge_margin, edge_rows)):
+            lane_ids = np.flatnonzero(t == RoadType.LANE)
+            edge_ids = np.flatnonzero(t == RoadType.ROAD_EDGE)
+            for ids, radius, rows in ((lane_ids, cfg.lane_radius, lane_rows),
+                                      (edge_ids, self.edge_margin, edge_rows)):
                 rows.extend(r + seg_offset for r in near_segment_rows(centres, info.dims, info.cell, a, b, ids, radius))
             seg_a.append(a)
             seg_b.append(b)
@@ -433,7 +439,7 @@ class Model:
             grid_first.append(cell_offset)
             seg_offset += a.shape[0]
             poly_offset += sc.num_roads
-            cell_offset += C
+            cell_offset += centres.shape[0]
 
         a = np.concatenate(seg_a)
         b = np.concatenate(seg_b)
@@ -442,7 +448,7 @@ class Model:
         obs_start, obs_items = _csr_from_lists(obs_rows)
         lane_start, lane_items = _csr_from_lists(lane_rows)
         edge_start, edge_items = _csr_from_lists(edge_rows)
-        self.host: dict[str, np.ndarray] = {
+        return {
             "seg_a": a.astype(np.float32),
             "seg_b": b.astype(np.float32),
             "seg_mid": (0.5 * (a + b)).astype(np.float32),
@@ -457,13 +463,36 @@ class Model:
             "obs_start": obs_start, "obs_items": obs_items,
             "lane_start": lane_start, "lane_items": lane_items,
             "edge_start": edge_start, "edge_items": edge_items,
-            "agent_first": agent_first,
-            "agent_scenario": np.repeat(np.arange(G, dtype=np.int32), n_agents).astype(np.int32),
-            "slot_count": np.array([o.size for o in self.slot_order], np.int32),
-            "log_xy": log_xy, "log_heading": log_heading, "log_vel": log_vel, "log_valid": log_valid,
-            "size": sizes, "agent_type": types, "goal": goals, "idm_v0": v0,
-            "path_xy": path_xy, "path_s": path_s, "path_h": path_h, "path_n": path_n,
         }
+
+    def _observed_rows(self, centres: np.ndarray, cell: float, a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
+        """Observation candidates of every cell of one scenario's grid: per cell centre
+        (C, 2) m, the ids (local to the scenario's (S, 2) segments ``a`` -> ``b``, m) of the
+        ``num_road`` segments whose midpoints are nearest to it, within road_radius + half
+        the cell diagonal (``cell`` m), nearest first (empty lists when ``num_road`` is 0)."""
+        cfg = self.config
+        M = cfg.num_road
+        C = centres.shape[0]
+        if M <= 0:
+            return [np.zeros(0, np.int64) for _ in range(C)]
+        half_diag = cell * np.sqrt(0.5)
+        mids = 0.5 * (a + b)
+        rows: list[np.ndarray] = []
+        chunk = max(1, 2_000_000 // max(a.shape[0], 1))  # bounds the (chunk, S) distance matrix
+        for c0 in range(0, C, chunk):
+            cc = centres[c0:c0 + chunk]
+            dm = np.sqrt(((cc[:, None, :] - mids[None]) ** 2).sum(-1))
+            if dm.shape[1] > M:
+                part = np.argpartition(dm, M - 1, axis=1)[:, :M]
+            else:
+                part = np.broadcast_to(np.arange(dm.shape[1]), dm.shape).copy()
+            dpart = np.take_along_axis(dm, part, axis=1)
+            order = np.argsort(dpart, axis=1, kind="stable")
+            part = np.take_along_axis(part, order, axis=1)
+            dpart = np.take_along_axis(dpart, order, axis=1)
+            inside = dpart <= cfg.road_radius + half_diag
+            rows.extend(part[r][inside[r]] for r in range(cc.shape[0]))
+        return rows
 
     def _grid_info(self, sc: Scenario, a: np.ndarray, b: np.ndarray) -> GridInfo:
         cfg = self.config

@@ -131,7 +131,8 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
                   obs: wp.array3d(dtype=wp.float32), sel_idx: wp.array3d(dtype=wp.int32),
                   sel_d2: wp.array3d(dtype=wp.float32), obs_clear: wp.array2d(dtype=wp.bool),
                   filled: wp.array3d(dtype=wp.int32), trig: wp.array2d(dtype=wp.vec2f), force: int):
-    """Write obs[w, a, :].
+    """Write obs[w, a, :]: :func:`ego_features`, :func:`condition_features`,
+    :func:`partner_features` of the :func:`nearest_partners`, :func:`road_features`.
 
     Observed are alive agents driven by the policy or holding a task (``task_agent``), or
     every alive agent with ``observe_all``; the others observe zeros; ``obs_clear`` remembers rows already zeroed so empty and
@@ -149,10 +150,8 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
                 obs[w, a, k] = 0.0
             obs_clear[w, a] = True
         return
-    K = params.num_partners
-    M = params.num_road
-    prev_partners = K
-    prev_road = M
+    prev_partners = params.num_partners
+    prev_road = params.num_road
     was_clear = obs_clear[w, a]
     if force == 0:
         if was_clear:
@@ -166,9 +165,27 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
     cs = trig[w, a]
     c = cs[0]
     s = cs[1]
-    vel = state.vel[w, a]
+    ego_features(state, params, w, a, p, c, s, obs)
+    condition_features(state, params, w, a, obs)
+    n = nearest_partners(state, model, params, w, a, p, sel_idx, sel_d2)
+    partner_features(state, params, w, a, p, c, s, n, prev_partners, obs, sel_idx, trig)
+    filled[w, a, 0] = n
+    same_cell = force == 0 and not was_clear
+    mcount = road_features(state, model, params, w, a, p, c, s, same_cell, prev_road, obs, filled)
+    filled[w, a, 1] = mcount
+
+
+@wp.func(inline=True)
+def ego_features(state: State, params: Params, w: int, a: int, p: wp.vec2f, c: float, s: float,
+                 obs: wp.array3d(dtype=wp.float32)):
+    """obs[w, a, 0:17], the ego features of :data:`cpsim.observation.EGO_FEATURE_NAMES`: speed
+    / 20 m/s, accel / 5 m/s^2, lateral accel / 4 m/s^2, steer / 0.55 rad, length / 10 m,
+    width / 5 m, goal offset in the ego frame / 100 m (x, y clamped to [-1, 1]), goal
+    direction (unit x, y), goal distance / 100 m (<= 1), lane heading error / pi, lane
+    offset / lane_radius, has-lane flag, collided and off-road flags, time left (1 at reset,
+    0 at the episode's end). ``p`` (m) and (``c``, ``s``) = (cos, sin) of the heading are the
+    ego pose."""
     size = state.size[w, a]
-    # ---------------------------------------------------------------- ego
     obs[w, a, 0] = state.speed[w, a] / 20.0
     obs[w, a, 1] = state.accel[w, a] / 5.0
     obs[w, a, 2] = state.lat_accel[w, a] / 4.0
@@ -203,13 +220,25 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
     obs[w, a, 14] = collided
     obs[w, a, 15] = offroad
     obs[w, a, 16] = 1.0 - float(state.step_count[w]) / float(params.episode_steps)
-    # ---------------------------------------------------------------- condition
+
+
+@wp.func(inline=True)
+def condition_features(state: State, params: Params, w: int, a: int, obs: wp.array3d(dtype=wp.float32)):
+    """obs[w, a, obs_condition:+10]: the agent's 10 condition fields mapped linearly from the
+    training range [TRAIN_LOW, TRAIN_HIGH] (:mod:`cpsim.conditions`) to [-1, 1]."""
     oc = params.obs_condition
     for f in range(10):
         obs[w, a, oc + f] = 2.0 * (state.conditions[w, a, f] - _COND_LOW[f]) / _COND_SPAN[f] - 1.0
-    # ---------------------------------------------------------------- partners
-    PF = params.partner_features
-    op = params.obs_partners
+
+
+@wp.func(inline=True)
+def nearest_partners(state: State, model: ModelArrays, params: Params, w: int, a: int, p: wp.vec2f,
+                     sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32)) -> int:
+    """The ``n`` <= num_partners (K) nearest other alive agents within ``partner_radius`` of
+    ``p`` (m): their slots in ``sel_idx[w, a, :n]`` and squared distances (m^2) in
+    ``sel_d2[w, a, :n]``, nearest first (one pass over the slots with an insertion sort into
+    the K-slot scratch list; ties keep slot order). Returns ``n``."""
+    K = params.num_partners
     n = int(0)
     if K > 0:
         R2 = params.partner_radius * params.partner_radius
@@ -236,6 +265,21 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
             sel_idx[w, a, m] = j
             if n < K:
                 n += 1
+    return n
+
+
+@wp.func(inline=True)
+def partner_features(state: State, params: Params, w: int, a: int, p: wp.vec2f, c: float, s: float, n: int,
+                     prev_partners: int, obs: wp.array3d(dtype=wp.float32), sel_idx: wp.array3d(dtype=wp.int32),
+                     trig: wp.array2d(dtype=wp.vec2f)):
+    """obs[w, a, obs_partners + k * partner_features:+10] for the ``n`` selected partners
+    ``sel_idx[w, a, k]``, in the ego frame of pose (``p`` m, heading (cos, sin) = (``c``,
+    ``s``)): relative position / partner_radius, relative heading (cos, sin), relative
+    velocity / 20 m/s, length / 10 m, width / 5 m, vulnerable-road-user flag, presence 1;
+    the entries of partners ``n .. prev_partners - 1`` (filled last time) are zeroed."""
+    PF = params.partner_features
+    op = params.obs_partners
+    vel = state.vel[w, a]
     inv_r = 1.0 / params.partner_radius
     for k in range(n):
         base = op + k * PF
@@ -259,19 +303,32 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
         obs[w, a, base + 9] = 1.0
     for k in range(n * PF, prev_partners * PF):  # entries filled last time, empty now
         obs[w, a, op + k] = 0.0
-    filled[w, a, 0] = n
-    # ---------------------------------------------------------------- road
-    # The cell's candidate list (nearest midpoints to the cell centre, within road_radius +
-    # half the cell diagonal) is written in order. While the agent stays in the same cell the
-    # same segments sit in the same slots, so their constant features (length, type flags,
-    # presence) are already in place and only the ego-frame pose is rewritten.
+
+
+@wp.func(inline=True)
+def road_features(state: State, model: ModelArrays, params: Params, w: int, a: int, p: wp.vec2f, c: float,
+                  s: float, keep_constants: bool, prev_road: int, obs: wp.array3d(dtype=wp.float32),
+                  filled: wp.array3d(dtype=wp.int32)) -> int:
+    """obs[w, a, obs_road + q * road_features:+8] for the up to num_road (M) candidate
+    segments of the grid cell holding ``p`` (m), in the ego frame (heading (cos, sin) =
+    (``c``, ``s``)): midpoint / road_radius, direction (unit x, y), length /
+    road_max_segment, lane and road-edge flags, presence 1. ``keep_constants``: the row was
+    filled last step (no force, not cleared), so in the same cell as last time
+    (``filled[w, a, 2]``) the constant features are kept. Zeroes the entries of segments
+    ``mcount .. prev_road - 1``, records the cell in ``filled[w, a, 2]``; returns ``mcount``.
+
+    The cell's candidate list (nearest midpoints to the cell centre, within road_radius +
+    half the cell diagonal) is written in order. While the agent stays in the same cell the
+    same segments sit in the same slots, so their constant features (length, type flags,
+    presence) are already in place and only the ego-frame pose is rewritten."""
+    M = params.num_road
     RF = params.road_features
     orr = params.obs_road
     mcount = int(0)
     if M > 0:
         g = state.scenario[w]
         cell = grid_cell(model, g, p, True)
-        same_cell = force == 0 and filled[w, a, 2] == cell and not was_clear
+        same_cell = keep_constants and filled[w, a, 2] == cell
         first = model.obs_start[cell]
         mcount = wp.min(model.obs_start[cell + 1] - first, M)
         inv_rr = 1.0 / params.road_radius
@@ -300,8 +357,9 @@ def observe_agent(state: State, model: ModelArrays, params: Params, w: int, a: i
         filled[w, a, 2] = cell
     for k in range(mcount * RF, prev_road * RF):
         obs[w, a, orr + k] = 0.0
-    filled[w, a, 1] = mcount
+    return mcount
 
 
-__all__ = ["observation_kernel", "observation_world_kernel", "observe_agent", "heading_trig_kernel",
-           "prepare_kernel", "tracked_role"]
+__all__ = ["observation_kernel", "observation_world_kernel", "observe_agent", "ego_features", "condition_features",
+           "nearest_partners", "partner_features", "road_features", "heading_trig_kernel", "prepare_kernel",
+           "tracked_role"]
