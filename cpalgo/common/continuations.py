@@ -296,14 +296,10 @@ class ContinuationRunner(GrowingSimulator):
 
     def __init__(self, make_simulator: Callable[[int], Any], policy: Any, gamma: float,
                  generator: th.Generator | None = None, proxy: ProxyFn | None = None, record: bool = True) -> None:
-        self.make_simulator = make_simulator
-        self.policy = policy
+        super().__init__(make_simulator, policy, generator)
         self.gamma = float(gamma)
-        self.generator = generator if generator is not None else th.Generator().manual_seed(0)
         self.proxy = proxy
         self.record = bool(record)
-        self._sim: Any = None
-        self._capacity = 0
 
     @th.no_grad()
     def run(self, jobs: Sequence[GroupJob]) -> list[GroupResult]:
@@ -313,9 +309,7 @@ class ContinuationRunner(GrowingSimulator):
         if not jobs:
             return []
         sizes = np.array([j.size for j in jobs], np.int64)
-        offsets = np.concatenate([[0], np.cumsum(sizes)])
-        n_used = int(offsets[-1])
-        sim = self.simulator(n_used)
+        sim, offsets, n_used = self.lay_out(sizes)
         n_worlds = self._capacity
         a = int(sim.max_agents)
         device = self.policy.device

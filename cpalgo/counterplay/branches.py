@@ -103,11 +103,17 @@ def branch_simulator_factory(source: Any) -> Callable[[int], Any]:
 
 
 class GrowingSimulator:
-    """Owns a second simulator built by ``self.make_simulator`` and grown by doubling."""
+    """Owns a second simulator built by ``make_simulator`` and grown by doubling, the frozen
+    ``policy`` its worlds run and the torch ``generator`` of their fresh uniforms (seeded 0
+    when None): the common part of :class:`BranchRunner` and the baselines'
+    ``ContinuationRunner``."""
 
-    make_simulator: Callable[[int], Any]
-    _sim: Any = None
-    _capacity: int = 0
+    def __init__(self, make_simulator: Callable[[int], Any], policy: Any, generator: th.Generator | None = None) -> None:
+        self.make_simulator = make_simulator
+        self.policy = policy
+        self.generator = generator if generator is not None else th.Generator().manual_seed(0)
+        self._sim: Any = None
+        self._capacity = 0
 
     def simulator(self, num_worlds: int) -> Any:
         """A branch simulator with at least ``num_worlds`` worlds (grown by doubling)."""
@@ -118,6 +124,14 @@ class GrowingSimulator:
             self._sim = self.make_simulator(capacity)
             self._capacity = capacity
         return self._sim
+
+    def lay_out(self, sizes: np.ndarray) -> tuple[Any, np.ndarray, int]:
+        """Worlds for jobs of ``sizes`` (n_jobs,) worlds each, in job order: ``(sim, offsets,
+        n_used)``, job k on worlds ``offsets[k]:offsets[k + 1]`` (offsets (n_jobs + 1,)),
+        ``n_used`` = ``sizes.sum()`` <= the simulator's ``self._capacity`` worlds."""
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        n_used = int(offsets[-1])
+        return self.simulator(n_used), offsets, n_used
 
 
 class BranchRunner(GrowingSimulator):
@@ -138,12 +152,8 @@ class BranchRunner(GrowingSimulator):
         obs_transform: Callable[[th.Tensor], th.Tensor] | None = None,
         generator: th.Generator | None = None,
     ) -> None:
-        self.make_simulator = make_simulator
-        self.policy = policy
+        super().__init__(make_simulator, policy, generator)
         self.obs_transform = obs_transform
-        self.generator = generator if generator is not None else th.Generator().manual_seed(0)
-        self._sim: Any = None
-        self._capacity = 0
 
     # ------------------------------------------------------------------ run
     @th.no_grad()
@@ -152,9 +162,7 @@ class BranchRunner(GrowingSimulator):
         if not jobs:
             return []
         sizes = np.array([j.num_branches for j in jobs], np.int64)
-        offsets = np.concatenate([[0], np.cumsum(sizes)])
-        n_used = int(offsets[-1])
-        sim = self.simulator(n_used)
+        sim, offsets, n_used = self.lay_out(sizes)
         n_worlds = self._capacity
         a = int(sim.max_agents)
         device = self.policy.device
