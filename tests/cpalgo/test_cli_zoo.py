@@ -39,7 +39,8 @@ def test_shipped_recipes_parse():
     # the fine-tuning stage of the shipped anchor: the same recipe at a lower learning rate
     finetune = load_recipe(ZOO_DIR / "anchor_finetune.yml")
     assert finetune.env_kwargs == anchor.env_kwargs and finetune.n_envs == anchor.n_envs
-    assert finetune.algo_kwargs["learning_rate"] == 3e-4 < anchor.algo_kwargs["learning_rate"]
+    assert finetune.algo_kwargs["learning_rate"] == 1e-4 < anchor.algo_kwargs["learning_rate"]
+    assert finetune.n_timesteps == 150_000
     same = {k: v for k, v in finetune.algo_kwargs.items() if k != "learning_rate"}
     assert same == {k: v for k, v in anchor.algo_kwargs.items() if k != "learning_rate"}
 
