@@ -14,6 +14,11 @@ See ``docs/ARCHITECTURE.md`` (Simulator) for the public contract. Layout of a st
 5. ``finish_kernel``: step counter, ``world_done``;
 6. ``observation_kernel``: the next observation.
 
+Per-step scratch passed from one kernel to a later one of the same step (``present`` from
+the motion to the prepare and events kernels, ``idm_accel`` from the IDM to the motion
+kernel) lives in ``self.scratch`` (:class:`cpsim.state.StepScratch`), not in the State: a
+snapshot, restore or ``state_dict`` leaves it out.
+
 All six are recorded launches (their arguments never change). On CPU the events and
 observation kernels (and the motion / IDM kernels where their modules offer a per-world
 variant) run one thread per world looping over its slots: a Warp CPU thread copies the
@@ -53,7 +58,16 @@ from cpsim.kernels.common import make_params
 from cpsim.model import Model
 from cpsim.observation import ObsLayout
 from cpsim.scenario.datatypes import Scenario
-from cpsim.state import METRIC_FIELDS, REWARD_TERMS, Control, State, allocate_state, state_field_names, state_to_numpy
+from cpsim.state import (
+    METRIC_FIELDS,
+    REWARD_TERMS,
+    Control,
+    State,
+    allocate_scratch,
+    allocate_state,
+    state_field_names,
+    state_to_numpy,
+)
 
 
 @dataclass
@@ -178,6 +192,9 @@ class Simulator:
         self._rng = np.random.default_rng(int(seed))
         W, A, D = self.num_worlds, self.max_agents, self.obs_layout.size
         self.state = allocate_state(W, A, self.device)
+        # per-step scratch (``present``, ``idm_accel``): rewritten by every step before it is
+        # read, so never part of a snapshot, a restore or ``state_dict``
+        self.scratch = allocate_scratch(W, A, self.device)
         self.control = Control.allocate(W, A, self.device)
         self._obs = wp.zeros((W, A, D), dtype=wp.float32, device=self.device)
         kp = max(self.config.num_partners, 1)
@@ -520,7 +537,7 @@ class Simulator:
         """Recorded launches of the step kernels (their arguments never change: the state
         arrays are allocated once), which skips most of wp.launch's per-call overhead."""
         dim = (self.num_worlds, self.max_agents)
-        s, m, p, dev = self.state, self.model.arrays, self._params, self.device
+        s, sc, m, p, dev = self.state, self.scratch, self.model.arrays, self._params, self.device
         track_all = int(self.track_all)
         roster = [self._trig, self._prev_trig, self._present_idx, self._tracked_idx, self._roster_n, self._radius]
 
@@ -528,11 +545,11 @@ class Simulator:
             return wp.launch(kernel, dim=d, inputs=inputs, device=dev, record_cmd=True)
 
         W = self.num_worlds
-        idm = rec(self._idm_kernel, W if self._idm_per_world else dim, [s, m, p])
+        idm = rec(self._idm_kernel, W if self._idm_per_world else dim, [s, sc, m, p])
         rest = [
-            rec(self._dyn_kernel, W if self._dyn_per_world else dim, [s, m, p, self.control.actions]),
-            rec(K.observation.prepare_kernel, W, [s, p, track_all, *roster]),
-            rec(self._events_kernel, W if self._cpu else dim, [s, m, p, track_all, *roster]),
+            rec(self._dyn_kernel, W if self._dyn_per_world else dim, [s, sc, m, p, self.control.actions]),
+            rec(K.observation.prepare_kernel, W, [s, sc, p, track_all, *roster]),
+            rec(self._events_kernel, W if self._cpu else dim, [s, sc, m, p, track_all, *roster]),
             rec(K.metrics.finish_kernel, W, [s, p, self._all_worlds, 1]),
             rec(self._obs_kernel, self._obs_dim(W),
                 [s, m, p, self._all_worlds, self._obs, self._sel_idx, self._sel_d2, self._obs_clear,

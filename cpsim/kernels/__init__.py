@@ -11,8 +11,9 @@
 
 Each kernel's docstring ends with ``Reads:`` / ``Writes:`` lines: the fields of its
 :class:`cpsim.state.State` argument it reads and writes (through the ``@wp.func`` helpers it
-calls too; ``*`` every field, ``-`` none), the order constraints between the launches of a
-step at a glance. ``tests/cpsim/test_kernel_contracts.py`` derives both lists from the source
+calls too; ``*`` every field, ``-`` none) and those of its :class:`cpsim.state.StepScratch`
+argument (``scratch.present``: per-step scratch, written and read within one step), the
+order constraints between the launches of a step at a glance. ``tests/cpsim/test_kernel_contracts.py`` derives both lists from the source
 and fails when a docstring falls behind.
 
 Importing this package registers every kernel; :func:`load` compiles (or loads from the

@@ -23,7 +23,7 @@ import warp as wp
 from cpsim.kernels.common import IDM, KERNEL_MODULE, Params
 from cpsim.kernels.geometry import cross2, wrap_angle
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 #: Horizon (s) of the straight-line prediction used for yielding to crossing agents.
 CROSSING_HORIZON = 3.0
@@ -130,11 +130,11 @@ def path_crossing(m: ModelArrays, row: int, q0: wp.vec2f, q1: wp.vec2f, k_from: 
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def idm_kernel(state: State, model: ModelArrays, params: Params):
+def idm_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params):
     """IDM acceleration of every live IDM agent from the current poses (over (W, A)).
 
     Reads: agent_row, alive, controller, heading, idm_k, idm_s, pos, size, speed, step_count, vel
-    Writes: idm_accel
+    Writes: scratch.idm_accel
     """
     w, a = wp.tid()
     if state.step_count[w] >= params.episode_steps or not state.alive[w, a] or state.controller[w, a] != IDM:
@@ -203,7 +203,7 @@ def idm_kernel(state: State, model: ModelArrays, params: Params):
             q = s_star / wp.max(gap, 0.1)
             acc = acc - amax * q * q
         acc = wp.clamp(acc, -8.0, amax)
-    state.idm_accel[w, a] = acc
+    scratch.idm_accel[w, a] = acc
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)

@@ -63,7 +63,7 @@ from cpsim.kernels.common import IDM, KERNEL_MODULE, LAST_LOG_STEP, POLICY, REPL
 from cpsim.kernels.controllers import path_pose
 from cpsim.kernels.geometry import wrap_angle
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 WHEELBASE_FRACTION = 0.6
 JERK_A_LONG_RANGE = (-5.0, 2.5)
@@ -153,24 +153,24 @@ def signed_speed(vel: wp.vec2f, heading: float) -> float:
 
 # ============================================================================ kernel
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: wp.array2d(dtype=wp.int32)):
+def dynamics_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params, actions: wp.array2d(dtype=wp.int32)):
     """Move every live agent one step with its controller (over (W, A)).
 
     Also clears last step's done flags, stores the previous pose (swept off-road test) and
-    sets ``present``. Replayed agents whose log becomes invalid vanish here (alive False,
+    sets ``scratch.present`` for every slot. Replayed agents whose log becomes invalid vanish here (alive False,
     done and truncated). Worlds whose episode is over are left unchanged.
 
-    Reads: accel, agent_row, alive, controller, heading, idm_accel, idm_k, idm_s, lat_accel, pos, size, speed,
-        steer, step_count, vel
+    Reads: accel, agent_row, alive, controller, heading, idm_k, idm_s, lat_accel, pos, size, speed, steer,
+        step_count, vel, scratch.idm_accel
     Writes: accel, alive, done, finished, heading, idm_k, idm_s, jerk, lat_accel, lat_jerk, pos, pos_hist,
-        present, prev_heading, prev_pos, prev_vel, speed, steer, terminated, truncated, vel
+        prev_heading, prev_pos, prev_vel, speed, steer, terminated, truncated, vel, scratch.present
     """
     w, a = wp.tid()
     state.done[w, a] = False
     state.terminated[w, a] = False
     state.truncated[w, a] = False
     if state.step_count[w] >= params.episode_steps or not state.alive[w, a]:
-        state.present[w, a] = False
+        scratch.present[w, a] = False
         return
     dt = params.dt
     ctrl = state.controller[w, a]
@@ -214,7 +214,7 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
         if not model.log_valid[row, t]:
             # the log ends: the agent leaves the world
             state.alive[w, a] = False
-            state.present[w, a] = False
+            scratch.present[w, a] = False
             state.finished[w, a] = True
             state.done[w, a] = True
             state.truncated[w, a] = True
@@ -226,7 +226,7 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
     elif ctrl == IDM:
         row = state.agent_row[w, a]
         v = wp.max(old_speed, 0.0)
-        v_new = wp.max(v + state.idm_accel[w, a] * dt, 0.0)
+        v_new = wp.max(v + scratch.idm_accel[w, a] * dt, 0.0)
         s = state.idm_s[w, a] + 0.5 * (v + v_new) * dt
         k = state.idm_k[w, a]
         new_pos, new_heading, k = path_pose(model, row, s, k)
@@ -257,7 +257,7 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
     state.accel[w, a] = new_accel
     state.lat_accel[w, a] = new_lat
     state.steer[w, a] = new_steer
-    state.present[w, a] = True
+    scratch.present[w, a] = True
 
 
 

@@ -64,7 +64,7 @@ from cpsim.kernels.geometry import (
 from cpsim.kernels.observation import tracked_role
 from cpsim.kernels.reward import comfort_violations, write_reward
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 
 @wp.func
@@ -154,7 +154,7 @@ def replay_offroad_kernel(model: ModelArrays, box_scale: float, out: wp.array2d(
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def events_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
+def events_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
                   trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                   present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                   roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
@@ -162,18 +162,19 @@ def events_kernel(state: State, model: ModelArrays, params: Params, track_all: i
 
     Reads: accel, agent_index, agent_row, agent_type, aligned_steps, comfort_violations, conditions, controller,
         finished, first_collision_step, first_offroad_step, goal, goal_step, heading, jerk, lat_accel,
-        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, present, prev_heading, prev_pos, prev_vel,
-        scenario, size, speed, step_count, steps_alive, task_agent
+        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, prev_heading, prev_pos, prev_vel, scenario, size,
+        speed, step_count, steps_alive, task_agent, scratch.present
     Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
         first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
         lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
     """
     w, a = wp.tid()
-    agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius, w, a)
+    agent_events(state, scratch, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n,
+                 radius, w, a)
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def events_world_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
+def events_world_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
                         trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                         present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                         roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
@@ -183,20 +184,20 @@ def events_world_kernel(state: State, model: ModelArrays, params: Params, track_
 
     Reads: accel, agent_index, agent_row, agent_type, aligned_steps, comfort_violations, conditions, controller,
         finished, first_collision_step, first_offroad_step, goal, goal_step, heading, jerk, lat_accel,
-        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, present, prev_heading, prev_pos, prev_vel,
-        scenario, size, speed, step_count, steps_alive, task_agent
+        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, prev_heading, prev_pos, prev_vel, scenario, size,
+        speed, step_count, steps_alive, task_agent, scratch.present
     Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
         first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
         lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
     """
     w = wp.tid()
-    for a in range(state.present.shape[1]):
-        agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius,
-                     w, a)
+    for a in range(scratch.present.shape[1]):
+        agent_events(state, scratch, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n,
+                     radius, w, a)
 
 
 @wp.func(inline=True)
-def agent_events(state: State, model: ModelArrays, params: Params, track_all: int,
+def agent_events(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
                  trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                  present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                  roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32), w: int, a: int):
@@ -217,7 +218,7 @@ def agent_events(state: State, model: ModelArrays, params: Params, track_all: in
     accumulators (they stay 0), reward 0. Nothing reads those for scenery, and scenery
     outnumbers the tracked agents about 5 to 1 on WOMD.
     """
-    if state.step_count[w] >= params.episode_steps or not state.present[w, a]:
+    if state.step_count[w] >= params.episode_steps or not scratch.present[w, a]:
         if state.agent_index[w, a] >= 0:  # empty slots keep the zeros written at reset
             state.reward[w, a] = 0.0
             for k in range(state.reward_raw.shape[2]):

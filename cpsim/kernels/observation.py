@@ -18,7 +18,7 @@ from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
 from cpsim.kernels.common import IDM, KERNEL_MODULE, POLICY, STATIC, VEHICLE, Params
 from cpsim.kernels.geometry import grid_cell, to_local
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 _COND_LOW = wp.constant(wp.types.vector(10, wp.float32)(*TRAIN_LOW.tolist()))
 _COND_SPAN = wp.constant(wp.types.vector(10, wp.float32)(*(TRAIN_HIGH - TRAIN_LOW).tolist()))
@@ -39,7 +39,7 @@ def tracked_role(ctrl: int, task: bool, finished: bool, a: int, observe_all: int
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2d(dtype=wp.vec2f),
+def prepare_kernel(state: State, scratch: StepScratch, params: Params, track_all: int, trig: wp.array2d(dtype=wp.vec2f),
                    prev_trig: wp.array2d(dtype=wp.vec2f), present_idx: wp.array2d(dtype=wp.int32),
                    tracked_idx: wp.array2d(dtype=wp.int32), roster_n: wp.array2d(dtype=wp.int32),
                    radius: wp.array2d(dtype=wp.float32)):
@@ -49,14 +49,14 @@ def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2
     pre-filter); ``present_idx[w, :n]`` lists the present slots and ``tracked_idx[w, :m]`` the
     present tracked ones (:func:`tracked_role`), both in slot order; ``roster_n[w]`` = (n, m).
 
-    Reads: controller, finished, heading, present, size, task_agent
+    Reads: controller, finished, heading, size, task_agent, scratch.present
     Writes: -
     """
     w = wp.tid()
     n = int(0)
     m = int(0)
-    for a in range(state.present.shape[1]):
-        if state.present[w, a]:
+    for a in range(scratch.present.shape[1]):
+        if scratch.present[w, a]:
             prev_trig[w, a] = trig[w, a]
             h = state.heading[w, a]
             trig[w, a] = wp.vec2f(wp.cos(h), wp.sin(h))

@@ -4,7 +4,9 @@
 ``src_idx[i]`` of one state to world ``dst_idx[i]`` of another (or the same) state, in one
 launch over (n, A): a snapshot gathers worlds into a compact snapshot state, a restore
 scatters them back (one-to-many by repeating a source index). Cost scales with the worlds
-touched. ``tests/cpsim/test_sim_snapshot.py`` checks that every State field is copied.
+touched. ``tests/cpsim/test_sim_snapshot.py`` checks that every State field is copied. The
+per-step :class:`cpsim.state.StepScratch` is neither copied nor reset: every step rewrites it
+before reading it.
 
 ``reset_kernel`` initialises the listed worlds from their scenario's log at t0. It reads the
 slot, controller and task tables of the scenario (uploaded once per Simulator) and the
@@ -44,7 +46,6 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
     dst.controller[d, a] = src.controller[s, a]
     dst.task_agent[d, a] = src.task_agent[s, a]
     dst.alive[d, a] = src.alive[s, a]
-    dst.present[d, a] = src.present[s, a]
     dst.finished[d, a] = src.finished[s, a]
     dst.pos[d, a] = src.pos[s, a]
     dst.heading[d, a] = src.heading[s, a]
@@ -76,7 +77,6 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
         dst.reward_w[d, a, f] = src.reward_w[s, a, f]
     dst.idm_s[d, a] = src.idm_s[s, a]
     dst.idm_k[d, a] = src.idm_k[s, a]
-    dst.idm_accel[d, a] = src.idm_accel[s, a]
     dst.lane_err[d, a] = src.lane_err[s, a]
     dst.lane_offset[d, a] = src.lane_offset[s, a]
     dst.has_lane[d, a] = src.has_lane[s, a]
@@ -131,7 +131,6 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
         state.conditions[w, a, f] = conditions[i, a, f]
     occupied = row >= 0
     state.alive[w, a] = occupied
-    state.present[w, a] = occupied
     state.finished[w, a] = False
     pos = wp.vec2f(0.0, 0.0)
     heading = float(0.0)
@@ -176,7 +175,6 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
         state.reward_w[w, a, k] = 0.0
     state.idm_s[w, a] = 0.0
     state.idm_k[w, a] = 0
-    state.idm_accel[w, a] = 0.0
     has_lane = bool(False)
     err = float(0.0)
     offset = float(0.0)
