@@ -54,12 +54,13 @@ step_count % 4): the at-fault rules classify a contact from the state one step b
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import warp as wp
 
 from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER, JERK_LAT, JERK_LONG
-from cpsim.kernels.common import IDM, KERNEL_MODULE, LAST_LOG_STEP, POLICY, REPLAY, STATIC, Params
+from cpsim.kernels.common import IDM, KERNEL_MODULE, LAST_LOG_STEP, POLICY, REPLAY, STATIC, Params, launch, launcher
 from cpsim.kernels.controllers import path_pose
 from cpsim.kernels.geometry import wrap_angle
 from cpsim.model import ModelArrays
@@ -260,6 +261,19 @@ def dynamics_kernel(state: State, scratch: StepScratch, model: ModelArrays, para
     scratch.present[w, a] = True
 
 
+@launcher(dynamics_kernel)
+def launch_dynamics(state: State, scratch: StepScratch, model: ModelArrays, params: Params, actions: wp.array, *,
+                    dim: Any, device: Any = None, record: bool = False, kernel: wp.Kernel = dynamics_kernel) -> Any:
+    """Launch the motion kernel (``kernel``: :func:`dynamics_kernel` or a variant with its
+    parameters) over ``dim``; ``actions`` (W, A) int32 is read only.
+
+    Writes: accel, alive, done, finished, heading, idm_k, idm_s, jerk, lat_accel, lat_jerk, pos, pos_hist,
+        prev_heading, prev_pos, prev_vel, speed, steer, terminated, truncated, vel, scratch.present
+    """
+    return launch(kernel, launch_dynamics.kernels, dim, [state, scratch, model, params, actions],
+                  device=device, record=record)
+
+
 
 # ============================================================================ NumPy references
 def jerk_step_np(x, y, heading, vx, vy, a_long, a_lat, steer, length, j_long, j_lat, dt=0.1):
@@ -311,5 +325,5 @@ def wrap(a: float) -> float:
     return a - 2.0 * math.pi * math.floor((a + math.pi) / (2.0 * math.pi))
 
 
-__all__ = ["jerk_step", "classic_step", "dynamics_kernel", "jerk_step_np", "classic_step_np",
+__all__ = ["jerk_step", "classic_step", "dynamics_kernel", "launch_dynamics", "jerk_step_np", "classic_step_np",
            "WHEELBASE_FRACTION"]

@@ -29,6 +29,8 @@ RUNNING). Each thread writes only its own agent, so the kernel is race-free.
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from cpsim.kernels.common import (
@@ -47,6 +49,8 @@ from cpsim.kernels.common import (
     TIMEOUT,
     VEHICLE,
     Params,
+    launch,
+    launcher,
 )
 from cpsim.kernels.geometry import (
     box_corner_cs,
@@ -153,6 +157,17 @@ def replay_offroad_kernel(model: ModelArrays, box_scale: float, out: wp.array2d(
     out[row, t] = hit
 
 
+@launcher(replay_offroad_kernel)
+def launch_replay_offroad(model: ModelArrays, box_scale: float, out: wp.array, *, dim: Any, device: Any = None,
+                          record: bool = False) -> Any:
+    """Launch :func:`replay_offroad_kernel` over ``dim`` = (L, T). Output: ``out`` (L, T) bool.
+
+    Writes: -
+    """
+    return launch(replay_offroad_kernel, launch_replay_offroad.kernels, dim, [model, float(box_scale)], [out],
+                  device=device, record=record)
+
+
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def events_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
                   trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
@@ -194,6 +209,23 @@ def events_world_kernel(state: State, scratch: StepScratch, model: ModelArrays, 
     for a in range(scratch.present.shape[1]):
         agent_events(state, scratch, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n,
                      radius, w, a)
+
+
+@launcher(events_kernel, events_world_kernel)
+def launch_events(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
+                  trig: wp.array, prev_trig: wp.array, present_idx: wp.array, tracked_idx: wp.array,
+                  roster_n: wp.array, radius: wp.array, *, dim: Any, device: Any = None, record: bool = False,
+                  kernel: wp.Kernel = events_kernel) -> Any:
+    """Launch the events of a step (``kernel``: :func:`events_kernel` over (W, A) or
+    :func:`events_world_kernel` over W); the arrays from ``prepare_kernel`` are read only.
+
+    Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
+        first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
+        lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
+    """
+    return launch(kernel, launch_events.kernels, dim,
+                  [state, scratch, model, params, int(track_all), trig, prev_trig, present_idx, tracked_idx,
+                   roster_n, radius], device=device, record=record)
 
 
 @wp.func(inline=True)
@@ -405,5 +437,17 @@ def finish_kernel(state: State, params: Params, worlds: wp.array(dtype=wp.int32)
     state.world_done[w] = t >= params.episode_steps or not any_policy
 
 
+@launcher(finish_kernel)
+def launch_finish(state: State, params: Params, worlds: wp.array, advance: int, *, dim: Any, device: Any = None,
+                  record: bool = False) -> Any:
+    """Launch :func:`finish_kernel` over ``dim`` = len(worlds); ``worlds`` is read only.
+
+    Writes: step_count, world_done
+    """
+    return launch(finish_kernel, launch_finish.kernels, dim, [state, params, worlds, int(advance)], device=device,
+                  record=record)
+
+
 __all__ = ["events_kernel", "events_world_kernel", "agent_events", "finish_kernel", "offroad_test",
-           "offroad_test_cs", "replay_offroad_kernel", "replay_pose"]
+           "offroad_test_cs", "replay_offroad_kernel", "replay_pose", "launch_events", "launch_finish",
+           "launch_replay_offroad"]

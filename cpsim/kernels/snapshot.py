@@ -16,9 +16,11 @@ per-reset allocation (plus the observation of the reset worlds).
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
-from cpsim.kernels.common import KERNEL_MODULE, NO_CONTROLLER, POLICY, RUNNING, STATIC, Params
+from cpsim.kernels.common import KERNEL_MODULE, NO_CONTROLLER, POLICY, RUNNING, STATIC, Params, launch, launcher
 from cpsim.kernels.dynamics import signed_speed
 from cpsim.kernels.geometry import lane_query
 from cpsim.kernels.observation import tracked_role
@@ -91,11 +93,23 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
     dst.at_fault[d, a] = src.at_fault[s, a]
 
 
+@launcher(copy_worlds_kernel)
+def launch_copy_worlds(src: State, dst: State, src_idx: wp.array, dst_idx: wp.array, *, dim: Any,
+                       device: Any = None, record: bool = False) -> Any:
+    """Launch :func:`copy_worlds_kernel` over ``dim`` = (n, A): ``dst`` world ``dst_idx[i]`` <-
+    ``src`` world ``src_idx[i]``; ``src``, ``src_idx`` and ``dst_idx`` are read only.
+
+    Writes: dst.*
+    """
+    return launch(copy_worlds_kernel, launch_copy_worlds.kernels, dim, [src, dst, src_idx, dst_idx],
+                  device=device, record=record)
+
+
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.array(dtype=wp.int32),
                  scenario: wp.array(dtype=wp.int32), slot_table: wp.array2d(dtype=wp.int32),
                  ctrl_table: wp.array2d(dtype=wp.int32), task_table: wp.array2d(dtype=wp.bool),
-                 conditions: wp.array3d(dtype=wp.float32), trig: wp.array2d(dtype=wp.vec2f), track_all: int):
+                 conditions: wp.array3d(dtype=wp.float32), track_all: int, trig: wp.array2d(dtype=wp.vec2f)):
     """Initialise world worlds[i] with pool scenario g = scenario[i]; slot a holds scenario
     agent slot_table[g, a] (-1 empty) driven by ctrl_table[g, a]; task_table[g, a] marks the
     controllable agents; conditions[i, a] are its raw conditions; trig[w, a] gets the (cos, sin)
@@ -198,4 +212,18 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
     state.at_fault[w, a] = False
 
 
-__all__ = ["copy_worlds_kernel", "reset_kernel"]
+@launcher(reset_kernel)
+def launch_reset(state: State, model: ModelArrays, params: Params, worlds: wp.array, scenario: wp.array,
+                 slot_table: wp.array, ctrl_table: wp.array, task_table: wp.array, conditions: wp.array,
+                 track_all: int, trig: wp.array, *, dim: Any, device: Any = None, record: bool = False) -> Any:
+    """Launch :func:`reset_kernel` over ``dim`` = (len(worlds), A); the staged worlds, scenarios
+    and conditions and the slot / controller / task tables are read only. Output: ``trig``.
+
+    Writes: *
+    """
+    return launch(reset_kernel, launch_reset.kernels, dim,
+                  [state, model, params, worlds, scenario, slot_table, ctrl_table, task_table, conditions,
+                   int(track_all)], [trig], device=device, record=record)
+
+
+__all__ = ["copy_worlds_kernel", "reset_kernel", "launch_copy_worlds", "launch_reset"]

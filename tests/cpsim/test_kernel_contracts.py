@@ -201,24 +201,26 @@ def kernel_access(kernel) -> Access:
 _LINE = re.compile(r"^\s*(Reads|Writes):(.*)$")
 
 
-def documented(kernel) -> Access:
+def documented(kernel, func=None, required: tuple[str, ...] = ("Reads", "Writes")) -> Access:
     """The ``Reads:`` / ``Writes:`` lists of a kernel's docstring (a list may continue on
-    the following more-indented lines)."""
-    doc = inspect.getdoc(kernel.func) or ""
+    the following more-indented lines); with ``func``, those of ``func``'s docstring (a
+    launcher of the kernel: its names resolve against the kernel's parameters)."""
+    func = kernel.func if func is None else func
+    doc = inspect.getdoc(func) or ""
     lists: dict[str, list[str]] = {}
     current = None
     for line in doc.splitlines():
         m = _LINE.match(line)
         if m:
             current = m.group(1)
-            assert current not in lists, f"{kernel.func.__name__}: two {current}: lines"
+            assert current not in lists, f"{func.__name__}: two {current}: lines"
             lists[current] = [m.group(2)]
         elif current is not None and line.startswith((" ", "\t")) and line.strip():
             lists[current].append(line)
         else:
             current = None
-    missing = {"Reads", "Writes"} - set(lists)
-    assert not missing, f"{kernel.func.__name__}: docstring lacks the {sorted(missing)} line(s)"
+    missing = set(required) - set(lists)
+    assert not missing, f"{func.__name__}: docstring lacks the {sorted(missing)} line(s)"
     kinds = dict(b.split(":", 1)[::-1] for b in kernel_bindings(kernel).values())  # prefix -> kind
     out = Access()
     for kind, parts in lists.items():
@@ -229,7 +231,7 @@ def documented(kernel) -> Access:
         for n in names:
             if n.endswith("*"):
                 struct = kinds.get(n[:-1])
-                assert struct is not None, f"{kernel.func.__name__}: {n!r} names no State / StepScratch parameter"
+                assert struct is not None, f"{func.__name__}: {n!r} names no State / StepScratch parameter"
                 target.update(n[:-1] + f for f in LISTED_STRUCTS[struct])
             else:
                 target.add(n)
@@ -310,6 +312,100 @@ def test_docstring_lists_the_state_fields_the_kernel_reads_and_writes(kernel):
         f"{name}: Writes: undocumented {sorted(got.writes - doc.writes)}, not written {sorted(doc.writes - got.writes)}")
     assert got.reads == doc.reads, (
         f"{name}: Reads: undocumented {sorted(got.reads - doc.reads)}, not read {sorted(doc.reads - got.reads)}")
+
+
+# ----------------------------------------------------------------------------- launchers
+def simulator_launchers() -> list:
+    """The ``launch_*`` functions of ``cpsim.kernels`` (marked by ``cpsim.kernels.common.launcher``)."""
+    found = []
+    for info in pkgutil.iter_modules(cpsim.kernels.__path__):
+        module = importlib.import_module(f"cpsim.kernels.{info.name}")
+        for obj in vars(module).values():
+            if inspect.isfunction(obj) and hasattr(obj, "kernels") and obj.__module__ == module.__name__:
+                found.append(obj)
+    return sorted(found, key=lambda f: f.__qualname__)
+
+
+LAUNCHERS = simulator_launchers()
+
+
+def _is_array_annotation(node: ast.expr | None) -> bool:
+    """``wp.array(...)``, ``wp.array2d(...)``, ...: an array parameter of a kernel."""
+    return isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr.startswith("array")
+
+
+def written_array_parameters(kernel) -> set[str]:
+    """The kernel's array parameters it writes (directly or through helpers)."""
+    tree = _parse(kernel.func)
+    bindings = kernel_bindings(kernel)
+    bindings.update({a.arg: "=@" + a.arg for a in tree.args.args if _is_array_annotation(a.annotation)})
+    got = analyse(kernel.func, bindings, Access())
+    return {w[1:] for w in got.writes if w.startswith("@")}
+
+
+def launched_arguments(launcher) -> tuple[list[str], list[str]]:
+    """The names a launcher passes as ``inputs`` and ``outputs`` (its one call of
+    ``cpsim.kernels.common.launch(kernel, kernels, dim, inputs, outputs=None, ...)``)."""
+    calls = [n for n in ast.walk(_parse(launcher)) if isinstance(n, ast.Call)
+             and isinstance(n.func, ast.Name) and n.func.id == "launch"]
+    assert len(calls) == 1, f"{launcher.__name__}: expected one launch(...) call"
+    call = calls[0]
+
+    def names(node: ast.expr | None) -> list[str]:
+        if node is None:
+            return []
+        assert isinstance(node, ast.List), f"{launcher.__name__}: inputs / outputs must be list literals"
+        out = []
+        for e in node.elts:
+            if isinstance(e, ast.Call) and isinstance(e.func, ast.Name) and e.func.id in ("int", "float"):
+                e = e.args[0]  # a scalar converted for Warp
+            assert isinstance(e, ast.Name), f"{launcher.__name__}: pass parameters by name, got {ast.unparse(e)}"
+            out.append(e.id)
+        return out
+
+    outputs = call.args[4] if len(call.args) > 4 else next((k.value for k in call.keywords if k.arg == "outputs"), None)
+    return names(call.args[3]), names(outputs)
+
+
+def test_every_kernel_has_one_launcher_beside_it():
+    for kernel in KERNELS:
+        owners = [f.__name__ for f in LAUNCHERS if any(k is kernel for k in f.kernels)]
+        assert len(owners) == 1, f"{kernel.func.__name__}: launchers {owners}"
+    for f in LAUNCHERS:
+        for kernel in f.kernels:
+            assert kernel.func.__module__ == f.__module__, f"{f.__name__}: {kernel.func.__name__} lives elsewhere"
+
+
+@pytest.mark.parametrize("launcher", LAUNCHERS, ids=[f.__name__ for f in LAUNCHERS])
+def test_launcher_passes_the_kernel_parameters_in_order_and_the_written_arrays_as_outputs(launcher):
+    """inputs + outputs are the kernel's parameters in order; outputs are exactly the array
+    parameters the kernel writes; the launcher's ``Writes:`` line equals the kernel's."""
+    inputs, outputs = launched_arguments(launcher)
+    own = list(inspect.signature(launcher).parameters)
+    assert set(inputs + outputs) <= set(own), f"{launcher.__name__}: passes names it does not take"
+    for kernel in launcher.kernels:
+        name = kernel.func.__name__
+        assert inputs + outputs == list(inspect.signature(kernel.func).parameters), name
+        assert set(outputs) == written_array_parameters(kernel), name
+        assert documented(kernel, launcher, ("Writes",)).writes == documented(kernel).writes, (
+            f"{launcher.__name__}: its Writes: line differs from {name}'s")
+
+
+def test_written_arrays_are_found():
+    by_name = {k.func.__name__: k for k in KERNELS}
+    assert written_array_parameters(by_name["prepare_kernel"]) == {
+        "trig", "prev_trig", "present_idx", "tracked_idx", "roster_n", "radius"}
+    assert written_array_parameters(by_name["observation_kernel"]) == {"obs", "sel_idx", "sel_d2", "obs_clear",
+                                                                       "filled"}
+    assert written_array_parameters(by_name["events_kernel"]) == set()
+
+
+def test_simulator_launches_kernels_only_through_launchers():
+    import cpsim.model
+    import cpsim.simulator
+
+    for module in (cpsim.simulator, cpsim.model):
+        assert "wp.launch(" not in inspect.getsource(module), module.__name__
 
 
 # ----------------------------------------------------------------------------- the analysis itself
