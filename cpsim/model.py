@@ -585,8 +585,7 @@ class Model:
         L, T = self.host["log_valid"].shape
         out = wp.zeros((L, T), dtype=wp.bool, device=self.device)
         self.arrays.log_offroad = out
-        wp.launch(K.metrics.replay_offroad_kernel, dim=(L, T), inputs=[self.arrays, float(self.config.box_scale), out],
-                  device=self.device)
+        K.metrics.launch_replay_offroad(self.arrays, float(self.config.box_scale), out, dim=(L, T), device=self.device)
 
     # ------------------------------------------------------------------ info
     @property

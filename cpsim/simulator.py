@@ -14,11 +14,18 @@ See ``docs/ARCHITECTURE.md`` (Simulator) for the public contract. Layout of a st
 5. ``finish_kernel``: step counter, ``world_done``;
 6. ``observation_kernel``: the next observation.
 
-All six are recorded launches (their arguments never change). On CPU the events and
-observation kernels (and the motion / IDM kernels where their modules offer a per-world
-variant) run one thread per world looping over its slots: a Warp CPU thread copies the
-kernel's State / ModelArrays / Params arguments on entry (about 60 ns, as much as a scenery
-agent's whole events), so per world rather than per slot. CUDA keeps one thread per slot;
+Per-step scratch passed from one kernel to a later one of the same step (``present`` from
+the motion to the prepare and events kernels, ``idm_accel`` from the IDM to the motion
+kernel) lives in ``self.scratch`` (:class:`cpsim.state.StepScratch`), not in the State: a
+snapshot, restore or ``state_dict`` leaves it out.
+
+All six are recorded launches (their arguments never change), made by the launchers
+beside the kernels (``cpsim.kernels.<module>.launch_*`` with ``record=True``; this module
+never calls ``wp.launch`` itself). On CPU the events and observation kernels (and the
+motion / IDM kernels where their modules offer a per-world variant) run one thread per
+world looping over its slots: a Warp CPU thread copies the kernel's State / ModelArrays /
+Params arguments on entry (about 60 ns, as much as a scenery agent's whole events), so per
+world rather than per slot. CUDA keeps one thread per slot;
 both shapes run the same ``wp.func`` in the same order. A reset is two recorded launches
 (``reset_kernel`` and the observation of the reset worlds) over staging buffers written in
 place: no per-reset allocation or upload.
@@ -53,7 +60,16 @@ from cpsim.kernels.common import make_params
 from cpsim.model import Model
 from cpsim.observation import ObsLayout
 from cpsim.scenario.datatypes import Scenario
-from cpsim.state import METRIC_FIELDS, REWARD_TERMS, Control, State, allocate_state, state_field_names, state_to_numpy
+from cpsim.state import (
+    METRIC_FIELDS,
+    REWARD_TERMS,
+    Control,
+    State,
+    allocate_scratch,
+    allocate_state,
+    state_field_names,
+    state_to_numpy,
+)
 
 
 @dataclass
@@ -80,8 +96,8 @@ class Snapshot:
         return state_to_numpy(self.state)
 
 
-#: Index of ``force`` among observation_kernel's arguments (set per recorded launch).
-_OBS_FORCE_ARG = 10
+#: Index of ``force`` among the observation kernel's arguments (set per recorded launch).
+_OBS_FORCE_ARG = K.observation.OBS_FORCE_ARG
 
 
 def _is_torch(x: Any) -> bool:
@@ -178,6 +194,9 @@ class Simulator:
         self._rng = np.random.default_rng(int(seed))
         W, A, D = self.num_worlds, self.max_agents, self.obs_layout.size
         self.state = allocate_state(W, A, self.device)
+        # per-step scratch (``present``, ``idm_accel``): rewritten by every step before it is
+        # read, so never part of a snapshot, a restore or ``state_dict``
+        self.scratch = allocate_scratch(W, A, self.device)
         self.control = Control.allocate(W, A, self.device)
         self._obs = wp.zeros((W, A, D), dtype=wp.float32, device=self.device)
         kp = max(self.config.num_partners, 1)
@@ -391,12 +410,12 @@ class Simulator:
         pair = self._obs_launches.get(key)
         if pair is None or pair[2] is not worlds_wp:
             dev, A = self.device, self.max_agents
-            trig = wp.launch(K.observation.heading_trig_kernel, dim=(1, A),
-                             inputs=[self.state, worlds_wp, self._trig], device=dev, record_cmd=True)
-            obs = wp.launch(self._obs_kernel, dim=self._obs_dim(1),
-                            inputs=[self.state, self.model.arrays, self._params, worlds_wp, self._obs,
-                                    self._sel_idx, self._sel_d2, self._obs_clear, self._obs_filled,
-                                    self._trig, 1], device=dev, record_cmd=True)
+            trig = K.observation.launch_heading_trig(self.state, worlds_wp, self._trig, dim=(1, A), device=dev,
+                                                     record=True)
+            obs = K.observation.launch_observation(
+                self.state, self.model.arrays, self._params, worlds_wp, self._trig, 1, self._obs, self._sel_idx,
+                self._sel_d2, self._obs_clear, self._obs_filled, dim=self._obs_dim(1), device=dev, record=True,
+                kernel=self._obs_kernel)
             pair = (trig, obs, worlds_wp)
             self._obs_launches[key] = pair
         return pair[0], pair[1]
@@ -490,12 +509,10 @@ class Simulator:
         self._reset_scen.put(scen)
         self._reset_cond.put(cond)
         if self._reset_launch is None:
-            self._reset_launch = wp.launch(
-                K.snapshot.reset_kernel, dim=(1, self.max_agents),
-                inputs=[self.state, self.model.arrays, self._params, self._reset_worlds.array,
-                        self._reset_scen.array, self._slot_table_wp, self._ctrl_table_wp, self._task_table_wp,
-                        self._reset_cond.array, self._trig, int(self.track_all)],
-                device=self.device, record_cmd=True)
+            self._reset_launch = K.snapshot.launch_reset(
+                self.state, self.model.arrays, self._params, self._reset_worlds.array, self._reset_scen.array,
+                self._slot_table_wp, self._ctrl_table_wp, self._task_table_wp, self._reset_cond.array,
+                int(self.track_all), self._trig, dim=(1, self.max_agents), device=self.device, record=True)
         self._reset_launch.set_dim((n, self.max_agents))
         self._reset_launch.launch()
         # reset_kernel wrote the heading (cos, sin); rows not forced: exact (see _launch_obs)
@@ -518,25 +535,26 @@ class Simulator:
 
     def _record_step_launches(self):
         """Recorded launches of the step kernels (their arguments never change: the state
-        arrays are allocated once), which skips most of wp.launch's per-call overhead."""
+        arrays are allocated once), which skips most of wp.launch's per-call overhead. Each
+        comes from the kernel's launcher (``cpsim.kernels.*.launch_*``) with ``record=True``."""
         dim = (self.num_worlds, self.max_agents)
-        s, m, p, dev = self.state, self.model.arrays, self._params, self.device
+        s, sc, m, p, dev = self.state, self.scratch, self.model.arrays, self._params, self.device
         track_all = int(self.track_all)
         roster = [self._trig, self._prev_trig, self._present_idx, self._tracked_idx, self._roster_n, self._radius]
-
-        def rec(kernel, d, inputs):
-            return wp.launch(kernel, dim=d, inputs=inputs, device=dev, record_cmd=True)
-
         W = self.num_worlds
-        idm = rec(self._idm_kernel, W if self._idm_per_world else dim, [s, m, p])
+        rec = {"device": dev, "record": True}
+        idm = K.controllers.launch_idm(s, sc, m, p, dim=W if self._idm_per_world else dim, kernel=self._idm_kernel,
+                                       **rec)
         rest = [
-            rec(self._dyn_kernel, W if self._dyn_per_world else dim, [s, m, p, self.control.actions]),
-            rec(K.observation.prepare_kernel, W, [s, p, track_all, *roster]),
-            rec(self._events_kernel, W if self._cpu else dim, [s, m, p, track_all, *roster]),
-            rec(K.metrics.finish_kernel, W, [s, p, self._all_worlds, 1]),
-            rec(self._obs_kernel, self._obs_dim(W),
-                [s, m, p, self._all_worlds, self._obs, self._sel_idx, self._sel_d2, self._obs_clear,
-                 self._obs_filled, self._trig, 0]),
+            K.dynamics.launch_dynamics(s, sc, m, p, self.control.actions, dim=W if self._dyn_per_world else dim,
+                                       kernel=self._dyn_kernel, **rec),
+            K.observation.launch_prepare(s, sc, p, track_all, *roster, dim=W, **rec),
+            K.metrics.launch_events(s, sc, m, p, track_all, *roster, dim=W if self._cpu else dim,
+                                    kernel=self._events_kernel, **rec),
+            K.metrics.launch_finish(s, p, self._all_worlds, 1, dim=W, **rec),
+            K.observation.launch_observation(s, m, p, self._all_worlds, self._trig, 0, self._obs, self._sel_idx,
+                                             self._sel_d2, self._obs_clear, self._obs_filled,
+                                             dim=self._obs_dim(W), kernel=self._obs_kernel, **rec),
         ]
         return idm, rest
 
@@ -587,11 +605,10 @@ class Simulator:
             self.controllers[idx] = torch.as_tensor(new, device=self._torch_device)
         w_wp = self._world_array(w)
         if attach.any():
-            wp.launch(K.controllers.idm_attach_kernel, dim=(w.size, self.max_agents),
-                      inputs=[self.state, self.model.arrays, w_wp,
-                              wp.array(attach, dtype=wp.bool, device=self.device)], device=self.device)
-        wp.launch(K.metrics.finish_kernel, dim=w.size, inputs=[self.state, self._params, w_wp, 0],
-                  device=self.device)
+            K.controllers.launch_idm_attach(self.state, self.model.arrays, w_wp,
+                                            wp.array(attach, dtype=wp.bool, device=self.device),
+                                            dim=(w.size, self.max_agents), device=self.device)
+        K.metrics.launch_finish(self.state, self._params, w_wp, 0, dim=w.size, device=self.device)
         self._refresh_has_idm()
 
     # ------------------------------------------------------------------ snapshots
@@ -612,9 +629,8 @@ class Simulator:
             snap = Snapshot(state=allocate_state(n, self.max_agents, self.device), num_worlds=n, worlds=w.copy(),
                             fingerprint=self.model.fingerprint, config=self.config,
                             max_agents=self.max_agents, device=self.device)
-        wp.launch(K.snapshot.copy_worlds_kernel, dim=(n, self.max_agents),
-                  inputs=[self.state, snap.state, self._world_array(w), self._arange_array(n)],
-                  device=self.device)
+        K.snapshot.launch_copy_worlds(self.state, snap.state, self._world_array(w), self._arange_array(n),
+                                      dim=(n, self.max_agents), device=self.device)
         return snap
 
     def _check_snapshot(self, snapshot: Any, argument: str = "snapshot") -> None:
@@ -656,8 +672,8 @@ class Simulator:
         if n == 0:
             return
         w_wp = self._world_array(w)
-        wp.launch(K.snapshot.copy_worlds_kernel, dim=(n, self.max_agents),
-                  inputs=[snapshot.state, self.state, self._world_array(src, slot=1), w_wp], device=self.device)
+        K.snapshot.launch_copy_worlds(snapshot.state, self.state, self._world_array(src, slot=1), w_wp,
+                                      dim=(n, self.max_agents), device=self.device)
         self._launch_obs(w_wp, n)
         self._refresh_has_idm(w)
 

@@ -2,7 +2,10 @@
 
 Everything a future step reads lives in :class:`State` (so a snapshot of a world is a
 copy of its rows of every field). Outputs that are pure functions of the state (the
-observation) live apart and are recomputed after a restore. Units: m, s, rad, m/s, m/s^2.
+observation) live apart and are recomputed after a restore. Per-step scratch, written and
+read within one step and rewritten by every step before anyone reads it, lives in
+:class:`StepScratch` (one per Simulator, next to its State): snapshots, restores and
+``state_dict`` leave it out. Units: m, s, rad, m/s, m/s^2.
 
 Shapes: W worlds, A agent slots, NC = 10 condition fields, NT reward terms.
 """
@@ -45,17 +48,7 @@ class State:
     agent_row: wp.array2d(dtype=wp.int32)       # row in the model's log arrays (-1 empty)
     controller: wp.array2d(dtype=wp.int32)      # Controller
     task_agent: wp.array2d(dtype=wp.bool)       # controllable at reset (vehicle with a task)
-    alive: wp.array2d(dtype=wp.bool)            # present and not removed
-    # present: the agent takes part in this step's events (alive when the step began and
-    # still in the world after the motion; written by the motion kernel and at reset only).
-    # Why not ``alive``: the events kernel clears ``alive`` of an agent it removes (goal,
-    # collision, off-road) in that agent's own thread while the other threads of the world
-    # test their agents against everyone. Reading the others' ``alive`` there would make
-    # whether an agent removed this step is still a collision partner depend on thread
-    # (or, on CPU, slot) order: one side of a collision could miss it. ``present`` does not
-    # change during the events, so every agent sees the same set and both sides record a
-    # collision. Rewritten every step (scratch between steps).
-    present: wp.array2d(dtype=wp.bool)
+    alive: wp.array2d(dtype=wp.bool)            # occupied slot, agent not removed
     finished: wp.array2d(dtype=wp.bool)         # the agent's episode ended (done was emitted)
     pos: wp.array2d(dtype=wp.vec2f)             # box centre, m
     heading: wp.array2d(dtype=wp.float32)       # rad
@@ -84,7 +77,6 @@ class State:
     reward_w: wp.array3d(dtype=wp.float32)      # (W, A, NT)
     idm_s: wp.array2d(dtype=wp.float32)         # arc position along the logged path, m
     idm_k: wp.array2d(dtype=wp.int32)           # path segment cursor
-    idm_accel: wp.array2d(dtype=wp.float32)     # IDM command for the next step (scratch)
     lane_err: wp.array2d(dtype=wp.float32)      # signed heading error to the nearest lane, rad
     lane_offset: wp.array2d(dtype=wp.float32)   # signed lateral offset (left +), m
     has_lane: wp.array2d(dtype=wp.bool)         # a lane centreline lies within lane_radius
@@ -98,6 +90,30 @@ class State:
     first_offroad_step: wp.array2d(dtype=wp.int32)
     goal_step: wp.array2d(dtype=wp.int32)
     at_fault: wp.array2d(dtype=wp.bool)
+
+
+@wp.struct
+class StepScratch:
+    """Per-step scratch (W, A) of a Simulator: written by one kernel of a step and read by a
+    later kernel of the same step, never carried from one step to the next (so never part of
+    a snapshot). Kernels take it as the parameter ``scratch`` (their ``Reads:`` / ``Writes:``
+    lines name its fields ``scratch.<field>``)."""
+
+    # present: the agent takes part in this step's events (alive when the step began and
+    # still in the world after the motion). Written for every slot by the motion kernel,
+    # read by the prepare and events kernels of the same step.
+    # Why not ``alive``: the events kernel clears ``alive`` of an agent it removes (goal,
+    # collision, off-road) in that agent's own thread while the other threads of the world
+    # test their agents against everyone. Reading the others' ``alive`` there would make
+    # whether an agent removed this step is still a collision partner depend on thread
+    # (or, on CPU, slot) order: one side of a collision could miss it. ``present`` does not
+    # change during the events, so every agent sees the same set and both sides record a
+    # collision.
+    present: wp.array2d(dtype=wp.bool)
+    # idm_accel: IDM command of this step, written by the IDM kernel for every live IDM agent
+    # of a running world and read by the motion kernel for exactly those agents (the IDM
+    # kernel runs in every step where some agent is on IDM).
+    idm_accel: wp.array2d(dtype=wp.float32)
 
 
 #: Fields with one entry per world (the others are per agent slot).
@@ -135,6 +151,20 @@ def allocate_state(num_worlds: int, max_agents: int, device: str) -> State:
     return s
 
 
+def scratch_field_names() -> tuple[str, ...]:
+    """Every field of :class:`StepScratch`, in declaration order."""
+    return tuple(StepScratch.vars.keys())
+
+
+def allocate_scratch(num_worlds: int, max_agents: int, device: str) -> StepScratch:
+    """Zero-initialised per-step scratch for W worlds x A slots (every field (W, A))."""
+    s = StepScratch()
+    for name in scratch_field_names():
+        setattr(s, name, wp.zeros((num_worlds, max_agents), dtype=StepScratch.vars[name].type.dtype,
+                                  device=device))
+    return s
+
+
 def state_to_numpy(state: State) -> dict[str, np.ndarray]:
     """Copies of every field as NumPy arrays (vec2 fields get a trailing axis of 2)."""
     return {name: getattr(state, name).numpy().copy() for name in state_field_names()}
@@ -151,5 +181,6 @@ class Control:
         return cls(actions=wp.zeros((num_worlds, max_agents), dtype=wp.int32, device=device))
 
 
-__all__ = ["State", "Control", "REWARD_TERMS", "NUM_REWARD_TERMS", "METRIC_FIELDS", "POS_HISTORY",
-           "allocate_state", "state_to_numpy", "state_field_names"]
+__all__ = ["State", "StepScratch", "Control", "REWARD_TERMS", "NUM_REWARD_TERMS", "METRIC_FIELDS", "POS_HISTORY",
+           "allocate_state", "allocate_scratch", "state_to_numpy", "state_field_names",
+           "scratch_field_names"]

@@ -11,9 +11,17 @@
 
 Each kernel's docstring ends with ``Reads:`` / ``Writes:`` lines: the fields of its
 :class:`cpsim.state.State` argument it reads and writes (through the ``@wp.func`` helpers it
-calls too; ``*`` every field, ``-`` none), the order constraints between the launches of a
-step at a glance. ``tests/cpsim/test_kernel_contracts.py`` derives both lists from the source
-and fails when a docstring falls behind.
+calls too; ``*`` every field, ``-`` none) and those of its :class:`cpsim.state.StepScratch`
+argument (``scratch.present``: per-step scratch, written and read within one step), the
+order constraints between the launches of a step at a glance.
+``tests/cpsim/test_kernel_contracts.py`` derives both lists from the source and fails when a
+docstring falls behind.
+
+Each kernel has a launcher beside it (``launch_*`` in its module, see
+:mod:`cpsim.kernels.common`): the kernel's arguments by name, written arrays passed as
+``outputs=``, the written State / StepScratch fields in its ``Writes:`` line, and
+``record=True`` for the Simulator's recorded launches. The Simulator never calls
+``wp.launch`` itself.
 
 Importing this package registers every kernel; :func:`load` compiles (or loads from the
 kernel cache) the module for a device up front.

@@ -4,11 +4,20 @@ All kernels of ``cpsim.kernels`` are registered in one Warp module (:data:`KERNE
 so the whole simulator compiles once (a few seconds, then milliseconds from the kernel
 cache). Configuration values travel in :class:`Params` at run time: changing the config
 never recompiles.
+
+Every kernel has a *launcher* beside it in its module (a ``launch_*`` function marked with
+:func:`launcher`): the one place that knows the kernel's parameter order. A launcher takes the
+kernel's arguments by name plus ``dim``, ``device`` and ``record``, passes the arrays the
+kernel writes as ``outputs=`` of ``wp.launch`` (its other arguments as ``inputs=``), names
+the State / StepScratch fields it writes in its docstring's ``Writes:`` line, and returns
+``wp.launch``'s result: the recorded command when ``record`` (``record_cmd=True``: the
+Simulator records the launches of a step and of a reset once and replays them), else None.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any, Callable, Sequence
 
 import warp as wp
 
@@ -120,4 +129,27 @@ def make_params(config: SimConfig, layout) -> Params:
     return p
 
 
-__all__ = ["KERNEL_MODULE", "KERNEL_OPTIONS", "Params", "make_params"]
+def launcher(*kernels: wp.Kernel) -> Callable:
+    """Mark a function as the launcher of ``kernels`` (a kernel and its variants with the same
+    parameters, e.g. a per-world one): ``fn.kernels`` lists them, and
+    ``tests/cpsim/test_kernel_contracts.py`` checks every kernel has exactly one launcher whose
+    ``Writes:`` line matches the kernel's."""
+
+    def mark(fn: Callable) -> Callable:
+        fn.kernels = kernels
+        return fn
+
+    return mark
+
+
+def launch(kernel: wp.Kernel, kernels: Sequence[wp.Kernel], dim: Any, inputs: list, outputs: list | None = None,
+           device: Any = None, record: bool = False) -> Any:
+    """``wp.launch`` for a launcher: ``kernel`` must be one of its ``kernels``; returns the
+    recorded command when ``record``, else None."""
+    if kernel not in kernels:
+        raise ValueError(f"{kernel.key}: not launched by this launcher (expects one of "
+                         f"{[k.key for k in kernels]})")
+    return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs or [], device=device, record_cmd=record)
+
+
+__all__ = ["KERNEL_MODULE", "KERNEL_OPTIONS", "Params", "make_params", "launcher", "launch"]

@@ -18,12 +18,14 @@ would (at max(v, 0.5) m/s), is a stopped obstacle at the crossing point (yieldin
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
-from cpsim.kernels.common import IDM, KERNEL_MODULE, Params
+from cpsim.kernels.common import IDM, KERNEL_MODULE, Params, launch, launcher
 from cpsim.kernels.geometry import cross2, wrap_angle
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 #: Horizon (s) of the straight-line prediction used for yielding to crossing agents.
 CROSSING_HORIZON = 3.0
@@ -130,11 +132,11 @@ def path_crossing(m: ModelArrays, row: int, q0: wp.vec2f, q1: wp.vec2f, k_from: 
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def idm_kernel(state: State, model: ModelArrays, params: Params):
+def idm_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params):
     """IDM acceleration of every live IDM agent from the current poses (over (W, A)).
 
     Reads: agent_row, alive, controller, heading, idm_k, idm_s, pos, size, speed, step_count, vel
-    Writes: idm_accel
+    Writes: scratch.idm_accel
     """
     w, a = wp.tid()
     if state.step_count[w] >= params.episode_steps or not state.alive[w, a] or state.controller[w, a] != IDM:
@@ -203,7 +205,7 @@ def idm_kernel(state: State, model: ModelArrays, params: Params):
             q = s_star / wp.max(gap, 0.1)
             acc = acc - amax * q * q
         acc = wp.clamp(acc, -8.0, amax)
-    state.idm_accel[w, a] = acc
+    scratch.idm_accel[w, a] = acc
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
@@ -227,4 +229,28 @@ def idm_attach_kernel(state: State, model: ModelArrays, worlds: wp.array(dtype=w
     state.idm_k[w, a] = k
 
 
-__all__ = ["path_pose", "path_project", "path_crossing", "idm_kernel", "idm_attach_kernel"]
+@launcher(idm_kernel)
+def launch_idm(state: State, scratch: StepScratch, model: ModelArrays, params: Params, *, dim: Any,
+               device: Any = None, record: bool = False, kernel: wp.Kernel = idm_kernel) -> Any:
+    """Launch the IDM kernel (``kernel``: :func:`idm_kernel` or a variant with its parameters)
+    over ``dim``.
+
+    Writes: scratch.idm_accel
+    """
+    return launch(kernel, launch_idm.kernels, dim, [state, scratch, model, params], device=device, record=record)
+
+
+@launcher(idm_attach_kernel)
+def launch_idm_attach(state: State, model: ModelArrays, worlds: wp.array, attach: wp.array, *, dim: Any,
+                      device: Any = None, record: bool = False) -> Any:
+    """Launch :func:`idm_attach_kernel` over ``dim`` = (len(worlds), A); ``worlds`` (n,) and
+    ``attach`` (n, A) bool are read only.
+
+    Writes: idm_k, idm_s
+    """
+    return launch(idm_attach_kernel, launch_idm_attach.kernels, dim, [state, model, worlds, attach],
+                  device=device, record=record)
+
+
+__all__ = ["path_pose", "path_project", "path_crossing", "idm_kernel", "idm_attach_kernel", "launch_idm",
+           "launch_idm_attach"]

@@ -54,16 +54,17 @@ step_count % 4): the at-fault rules classify a contact from the state one step b
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import warp as wp
 
 from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER, JERK_LAT, JERK_LONG
-from cpsim.kernels.common import IDM, KERNEL_MODULE, LAST_LOG_STEP, POLICY, REPLAY, STATIC, Params
+from cpsim.kernels.common import IDM, KERNEL_MODULE, LAST_LOG_STEP, POLICY, REPLAY, STATIC, Params, launch, launcher
 from cpsim.kernels.controllers import path_pose
 from cpsim.kernels.geometry import wrap_angle
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 WHEELBASE_FRACTION = 0.6
 JERK_A_LONG_RANGE = (-5.0, 2.5)
@@ -153,24 +154,24 @@ def signed_speed(vel: wp.vec2f, heading: float) -> float:
 
 # ============================================================================ kernel
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: wp.array2d(dtype=wp.int32)):
+def dynamics_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params, actions: wp.array2d(dtype=wp.int32)):
     """Move every live agent one step with its controller (over (W, A)).
 
     Also clears last step's done flags, stores the previous pose (swept off-road test) and
-    sets ``present``. Replayed agents whose log becomes invalid vanish here (alive False,
+    sets ``scratch.present`` for every slot. Replayed agents whose log becomes invalid vanish here (alive False,
     done and truncated). Worlds whose episode is over are left unchanged.
 
-    Reads: accel, agent_row, alive, controller, heading, idm_accel, idm_k, idm_s, lat_accel, pos, size, speed,
-        steer, step_count, vel
+    Reads: accel, agent_row, alive, controller, heading, idm_k, idm_s, lat_accel, pos, size, speed, steer,
+        step_count, vel, scratch.idm_accel
     Writes: accel, alive, done, finished, heading, idm_k, idm_s, jerk, lat_accel, lat_jerk, pos, pos_hist,
-        present, prev_heading, prev_pos, prev_vel, speed, steer, terminated, truncated, vel
+        prev_heading, prev_pos, prev_vel, speed, steer, terminated, truncated, vel, scratch.present
     """
     w, a = wp.tid()
     state.done[w, a] = False
     state.terminated[w, a] = False
     state.truncated[w, a] = False
     if state.step_count[w] >= params.episode_steps or not state.alive[w, a]:
-        state.present[w, a] = False
+        scratch.present[w, a] = False
         return
     dt = params.dt
     ctrl = state.controller[w, a]
@@ -214,7 +215,7 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
         if not model.log_valid[row, t]:
             # the log ends: the agent leaves the world
             state.alive[w, a] = False
-            state.present[w, a] = False
+            scratch.present[w, a] = False
             state.finished[w, a] = True
             state.done[w, a] = True
             state.truncated[w, a] = True
@@ -226,7 +227,7 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
     elif ctrl == IDM:
         row = state.agent_row[w, a]
         v = wp.max(old_speed, 0.0)
-        v_new = wp.max(v + state.idm_accel[w, a] * dt, 0.0)
+        v_new = wp.max(v + scratch.idm_accel[w, a] * dt, 0.0)
         s = state.idm_s[w, a] + 0.5 * (v + v_new) * dt
         k = state.idm_k[w, a]
         new_pos, new_heading, k = path_pose(model, row, s, k)
@@ -257,7 +258,20 @@ def dynamics_kernel(state: State, model: ModelArrays, params: Params, actions: w
     state.accel[w, a] = new_accel
     state.lat_accel[w, a] = new_lat
     state.steer[w, a] = new_steer
-    state.present[w, a] = True
+    scratch.present[w, a] = True
+
+
+@launcher(dynamics_kernel)
+def launch_dynamics(state: State, scratch: StepScratch, model: ModelArrays, params: Params, actions: wp.array, *,
+                    dim: Any, device: Any = None, record: bool = False, kernel: wp.Kernel = dynamics_kernel) -> Any:
+    """Launch the motion kernel (``kernel``: :func:`dynamics_kernel` or a variant with its
+    parameters) over ``dim``; ``actions`` (W, A) int32 is read only.
+
+    Writes: accel, alive, done, finished, heading, idm_k, idm_s, jerk, lat_accel, lat_jerk, pos, pos_hist,
+        prev_heading, prev_pos, prev_vel, speed, steer, terminated, truncated, vel, scratch.present
+    """
+    return launch(kernel, launch_dynamics.kernels, dim, [state, scratch, model, params, actions],
+                  device=device, record=record)
 
 
 
@@ -311,5 +325,5 @@ def wrap(a: float) -> float:
     return a - 2.0 * math.pi * math.floor((a + math.pi) / (2.0 * math.pi))
 
 
-__all__ = ["jerk_step", "classic_step", "dynamics_kernel", "jerk_step_np", "classic_step_np",
+__all__ = ["jerk_step", "classic_step", "dynamics_kernel", "launch_dynamics", "jerk_step_np", "classic_step_np",
            "WHEELBASE_FRACTION"]

@@ -29,6 +29,8 @@ RUNNING). Each thread writes only its own agent, so the kernel is race-free.
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from cpsim.kernels.common import (
@@ -47,6 +49,8 @@ from cpsim.kernels.common import (
     TIMEOUT,
     VEHICLE,
     Params,
+    launch,
+    launcher,
 )
 from cpsim.kernels.geometry import (
     box_corner_cs,
@@ -64,7 +68,7 @@ from cpsim.kernels.geometry import (
 from cpsim.kernels.observation import tracked_role
 from cpsim.kernels.reward import comfort_violations, write_reward
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 
 @wp.func
@@ -153,8 +157,19 @@ def replay_offroad_kernel(model: ModelArrays, box_scale: float, out: wp.array2d(
     out[row, t] = hit
 
 
+@launcher(replay_offroad_kernel)
+def launch_replay_offroad(model: ModelArrays, box_scale: float, out: wp.array, *, dim: Any, device: Any = None,
+                          record: bool = False) -> Any:
+    """Launch :func:`replay_offroad_kernel` over ``dim`` = (L, T). Output: ``out`` (L, T) bool.
+
+    Writes: -
+    """
+    return launch(replay_offroad_kernel, launch_replay_offroad.kernels, dim, [model, float(box_scale)], [out],
+                  device=device, record=record)
+
+
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def events_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
+def events_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
                   trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                   present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                   roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
@@ -162,18 +177,19 @@ def events_kernel(state: State, model: ModelArrays, params: Params, track_all: i
 
     Reads: accel, agent_index, agent_row, agent_type, aligned_steps, comfort_violations, conditions, controller,
         finished, first_collision_step, first_offroad_step, goal, goal_step, heading, jerk, lat_accel,
-        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, present, prev_heading, prev_pos, prev_vel,
-        scenario, size, speed, step_count, steps_alive, task_agent
+        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, prev_heading, prev_pos, prev_vel, scenario, size,
+        speed, step_count, steps_alive, task_agent, scratch.present
     Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
         first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
         lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
     """
     w, a = wp.tid()
-    agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius, w, a)
+    agent_events(state, scratch, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n,
+                 radius, w, a)
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def events_world_kernel(state: State, model: ModelArrays, params: Params, track_all: int,
+def events_world_kernel(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
                         trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                         present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                         roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32)):
@@ -183,20 +199,37 @@ def events_world_kernel(state: State, model: ModelArrays, params: Params, track_
 
     Reads: accel, agent_index, agent_row, agent_type, aligned_steps, comfort_violations, conditions, controller,
         finished, first_collision_step, first_offroad_step, goal, goal_step, heading, jerk, lat_accel,
-        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, present, prev_heading, prev_pos, prev_vel,
-        scenario, size, speed, step_count, steps_alive, task_agent
+        lat_jerk, lateral_offset_sum, outcome, pos, pos_hist, prev_heading, prev_pos, prev_vel, scenario, size,
+        speed, step_count, steps_alive, task_agent, scratch.present
     Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
         first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
         lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
     """
     w = wp.tid()
-    for a in range(state.present.shape[1]):
-        agent_events(state, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n, radius,
-                     w, a)
+    for a in range(scratch.present.shape[1]):
+        agent_events(state, scratch, model, params, track_all, trig, prev_trig, present_idx, tracked_idx, roster_n,
+                     radius, w, a)
+
+
+@launcher(events_kernel, events_world_kernel)
+def launch_events(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
+                  trig: wp.array, prev_trig: wp.array, present_idx: wp.array, tracked_idx: wp.array,
+                  roster_n: wp.array, radius: wp.array, *, dim: Any, device: Any = None, record: bool = False,
+                  kernel: wp.Kernel = events_kernel) -> Any:
+    """Launch the events of a step (``kernel``: :func:`events_kernel` over (W, A) or
+    :func:`events_world_kernel` over W); the arrays from ``prepare_kernel`` are read only.
+
+    Writes: aligned_steps, alive, at_fault, collision_partner, comfort_violations, controller, done, finished,
+        first_collision_step, first_offroad_step, goal_step, has_lane, lane_err, lane_offset,
+        lateral_offset_sum, outcome, reward, reward_raw, reward_w, steps_alive, terminated, truncated
+    """
+    return launch(kernel, launch_events.kernels, dim,
+                  [state, scratch, model, params, int(track_all), trig, prev_trig, present_idx, tracked_idx,
+                   roster_n, radius], device=device, record=record)
 
 
 @wp.func(inline=True)
-def agent_events(state: State, model: ModelArrays, params: Params, track_all: int,
+def agent_events(state: State, scratch: StepScratch, model: ModelArrays, params: Params, track_all: int,
                  trig: wp.array2d(dtype=wp.vec2f), prev_trig: wp.array2d(dtype=wp.vec2f),
                  present_idx: wp.array2d(dtype=wp.int32), tracked_idx: wp.array2d(dtype=wp.int32),
                  roster_n: wp.array2d(dtype=wp.int32), radius: wp.array2d(dtype=wp.float32), w: int, a: int):
@@ -217,7 +250,7 @@ def agent_events(state: State, model: ModelArrays, params: Params, track_all: in
     accumulators (they stay 0), reward 0. Nothing reads those for scenery, and scenery
     outnumbers the tracked agents about 5 to 1 on WOMD.
     """
-    if state.step_count[w] >= params.episode_steps or not state.present[w, a]:
+    if state.step_count[w] >= params.episode_steps or not scratch.present[w, a]:
         if state.agent_index[w, a] >= 0:  # empty slots keep the zeros written at reset
             state.reward[w, a] = 0.0
             for k in range(state.reward_raw.shape[2]):
@@ -404,5 +437,17 @@ def finish_kernel(state: State, params: Params, worlds: wp.array(dtype=wp.int32)
     state.world_done[w] = t >= params.episode_steps or not any_policy
 
 
+@launcher(finish_kernel)
+def launch_finish(state: State, params: Params, worlds: wp.array, advance: int, *, dim: Any, device: Any = None,
+                  record: bool = False) -> Any:
+    """Launch :func:`finish_kernel` over ``dim`` = len(worlds); ``worlds`` is read only.
+
+    Writes: step_count, world_done
+    """
+    return launch(finish_kernel, launch_finish.kernels, dim, [state, params, worlds, int(advance)], device=device,
+                  record=record)
+
+
 __all__ = ["events_kernel", "events_world_kernel", "agent_events", "finish_kernel", "offroad_test",
-           "offroad_test_cs", "replay_offroad_kernel", "replay_pose"]
+           "offroad_test_cs", "replay_offroad_kernel", "replay_pose", "launch_events", "launch_finish",
+           "launch_replay_offroad"]

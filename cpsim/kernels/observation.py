@@ -12,13 +12,16 @@ and metric (see :mod:`cpsim.kernels.metrics`).
 
 from __future__ import annotations
 
+import inspect
+from typing import Any
+
 import warp as wp
 
 from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
-from cpsim.kernels.common import IDM, KERNEL_MODULE, POLICY, STATIC, VEHICLE, Params
+from cpsim.kernels.common import IDM, KERNEL_MODULE, POLICY, STATIC, VEHICLE, Params, launch, launcher
 from cpsim.kernels.geometry import grid_cell, to_local
 from cpsim.model import ModelArrays
-from cpsim.state import State
+from cpsim.state import State, StepScratch
 
 _COND_LOW = wp.constant(wp.types.vector(10, wp.float32)(*TRAIN_LOW.tolist()))
 _COND_SPAN = wp.constant(wp.types.vector(10, wp.float32)(*(TRAIN_HIGH - TRAIN_LOW).tolist()))
@@ -39,7 +42,7 @@ def tracked_role(ctrl: int, task: bool, finished: bool, a: int, observe_all: int
 
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
-def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2d(dtype=wp.vec2f),
+def prepare_kernel(state: State, scratch: StepScratch, params: Params, track_all: int, trig: wp.array2d(dtype=wp.vec2f),
                    prev_trig: wp.array2d(dtype=wp.vec2f), present_idx: wp.array2d(dtype=wp.int32),
                    tracked_idx: wp.array2d(dtype=wp.int32), roster_n: wp.array2d(dtype=wp.int32),
                    radius: wp.array2d(dtype=wp.float32)):
@@ -49,14 +52,14 @@ def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2
     pre-filter); ``present_idx[w, :n]`` lists the present slots and ``tracked_idx[w, :m]`` the
     present tracked ones (:func:`tracked_role`), both in slot order; ``roster_n[w]`` = (n, m).
 
-    Reads: controller, finished, heading, present, size, task_agent
+    Reads: controller, finished, heading, size, task_agent, scratch.present
     Writes: -
     """
     w = wp.tid()
     n = int(0)
     m = int(0)
-    for a in range(state.present.shape[1]):
-        if state.present[w, a]:
+    for a in range(scratch.present.shape[1]):
+        if scratch.present[w, a]:
             prev_trig[w, a] = trig[w, a]
             h = state.heading[w, a]
             trig[w, a] = wp.vec2f(wp.cos(h), wp.sin(h))
@@ -74,6 +77,19 @@ def prepare_kernel(state: State, params: Params, track_all: int, trig: wp.array2
     roster_n[w, 1] = m
 
 
+@launcher(prepare_kernel)
+def launch_prepare(state: State, scratch: StepScratch, params: Params, track_all: int, trig: wp.array,
+                   prev_trig: wp.array, present_idx: wp.array, tracked_idx: wp.array, roster_n: wp.array,
+                   radius: wp.array, *, dim: Any, device: Any = None, record: bool = False) -> Any:
+    """Launch :func:`prepare_kernel` over ``dim`` = W. Outputs: ``trig`` (also read),
+    ``prev_trig``, ``present_idx``, ``tracked_idx``, ``roster_n``, ``radius``.
+
+    Writes: -
+    """
+    return launch(prepare_kernel, launch_prepare.kernels, dim, [state, scratch, params, track_all],
+                  [trig, prev_trig, present_idx, tracked_idx, roster_n, radius], device=device, record=record)
+
+
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def heading_trig_kernel(state: State, worlds: wp.array(dtype=wp.int32), trig: wp.array2d(dtype=wp.vec2f)):
     """trig[w, a] = (cos, sin) of every heading (a pre-pass: partners reuse them, over (n, A)).
@@ -87,12 +103,23 @@ def heading_trig_kernel(state: State, worlds: wp.array(dtype=wp.int32), trig: wp
     trig[w, a] = wp.vec2f(wp.cos(h), wp.sin(h))
 
 
+@launcher(heading_trig_kernel)
+def launch_heading_trig(state: State, worlds: wp.array, trig: wp.array, *, dim: Any, device: Any = None,
+                        record: bool = False) -> Any:
+    """Launch :func:`heading_trig_kernel` over ``dim`` = (len(worlds), A). Output: ``trig``.
+
+    Writes: -
+    """
+    return launch(heading_trig_kernel, launch_heading_trig.kernels, dim, [state, worlds], [trig],
+                  device=device, record=record)
+
+
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def observation_kernel(state: State, model: ModelArrays, params: Params,
-                       worlds: wp.array(dtype=wp.int32), obs: wp.array3d(dtype=wp.float32),
-                       sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32),
-                       obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32),
-                       trig: wp.array2d(dtype=wp.vec2f), force: int):
+                       worlds: wp.array(dtype=wp.int32), trig: wp.array2d(dtype=wp.vec2f), force: int,
+                       obs: wp.array3d(dtype=wp.float32), sel_idx: wp.array3d(dtype=wp.int32),
+                       sel_d2: wp.array3d(dtype=wp.float32), obs_clear: wp.array2d(dtype=wp.bool),
+                       filled: wp.array3d(dtype=wp.int32)):
     """:func:`observe_agent` for the worlds listed in ``worlds``, over (len(worlds), A): one
     thread per agent (CUDA).
 
@@ -107,10 +134,10 @@ def observation_kernel(state: State, model: ModelArrays, params: Params,
 
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def observation_world_kernel(state: State, model: ModelArrays, params: Params,
-                             worlds: wp.array(dtype=wp.int32), obs: wp.array3d(dtype=wp.float32),
-                             sel_idx: wp.array3d(dtype=wp.int32), sel_d2: wp.array3d(dtype=wp.float32),
-                             obs_clear: wp.array2d(dtype=wp.bool), filled: wp.array3d(dtype=wp.int32),
-                             trig: wp.array2d(dtype=wp.vec2f), force: int):
+                             worlds: wp.array(dtype=wp.int32), trig: wp.array2d(dtype=wp.vec2f), force: int,
+                             obs: wp.array3d(dtype=wp.float32), sel_idx: wp.array3d(dtype=wp.int32),
+                             sel_d2: wp.array3d(dtype=wp.float32), obs_clear: wp.array2d(dtype=wp.bool),
+                             filled: wp.array3d(dtype=wp.int32)):
     """:func:`observe_agent` for the worlds listed in ``worlds``, over len(worlds): one thread
     per world looping over its slots (CPU: fewer copies of the State / ModelArrays arguments,
     which a CPU thread makes on entry; same order and results as ``observation_kernel``).
@@ -124,6 +151,28 @@ def observation_world_kernel(state: State, model: ModelArrays, params: Params,
     w = worlds[i]
     for a in range(obs.shape[1]):
         observe_agent(state, model, params, w, a, obs, sel_idx, sel_d2, obs_clear, filled, trig, force)
+
+
+@launcher(observation_kernel, observation_world_kernel)
+def launch_observation(state: State, model: ModelArrays, params: Params, worlds: wp.array, trig: wp.array,
+                       force: int, obs: wp.array, sel_idx: wp.array, sel_d2: wp.array, obs_clear: wp.array,
+                       filled: wp.array, *, dim: Any, device: Any = None, record: bool = False,
+                       kernel: wp.Kernel = observation_kernel) -> Any:
+    """Launch the observation of the worlds listed in ``worlds`` (``kernel``:
+    :func:`observation_kernel` over (len(worlds), A) or :func:`observation_world_kernel` over
+    len(worlds)); ``trig`` and ``force`` are read only (a recorded launch changes ``force``
+    with ``set_param_at_index(OBS_FORCE_ARG, ...)``). Outputs: ``obs``, ``sel_idx``,
+    ``sel_d2``, ``obs_clear``, ``filled``.
+
+    Writes: -
+    """
+    return launch(kernel, launch_observation.kernels, dim, [state, model, params, worlds, trig, int(force)],
+                  [obs, sel_idx, sel_d2, obs_clear, filled], device=device, record=record)
+
+
+#: Index of ``force`` among the observation kernels' parameters (for ``set_param_at_index``).
+OBS_FORCE_ARG = list(inspect.signature(observation_kernel.func).parameters).index("force")
+assert OBS_FORCE_ARG == list(inspect.signature(observation_world_kernel.func).parameters).index("force")
 
 
 @wp.func(inline=True)
@@ -362,4 +411,4 @@ def road_features(state: State, model: ModelArrays, params: Params, w: int, a: i
 
 __all__ = ["observation_kernel", "observation_world_kernel", "observe_agent", "ego_features", "condition_features",
            "nearest_partners", "partner_features", "road_features", "heading_trig_kernel", "prepare_kernel",
-           "tracked_role"]
+           "tracked_role", "launch_prepare", "launch_heading_trig", "launch_observation", "OBS_FORCE_ARG"]

@@ -4,7 +4,9 @@
 ``src_idx[i]`` of one state to world ``dst_idx[i]`` of another (or the same) state, in one
 launch over (n, A): a snapshot gathers worlds into a compact snapshot state, a restore
 scatters them back (one-to-many by repeating a source index). Cost scales with the worlds
-touched. ``tests/cpsim/test_sim_snapshot.py`` checks that every State field is copied.
+touched. ``tests/cpsim/test_sim_snapshot.py`` checks that every State field is copied. The
+per-step :class:`cpsim.state.StepScratch` is neither copied nor reset: every step rewrites it
+before reading it.
 
 ``reset_kernel`` initialises the listed worlds from their scenario's log at t0. It reads the
 slot, controller and task tables of the scenario (uploaded once per Simulator) and the
@@ -14,9 +16,11 @@ per-reset allocation (plus the observation of the reset worlds).
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
-from cpsim.kernels.common import KERNEL_MODULE, NO_CONTROLLER, POLICY, RUNNING, STATIC, Params
+from cpsim.kernels.common import KERNEL_MODULE, NO_CONTROLLER, POLICY, RUNNING, STATIC, Params, launch, launcher
 from cpsim.kernels.dynamics import signed_speed
 from cpsim.kernels.geometry import lane_query
 from cpsim.kernels.observation import tracked_role
@@ -44,7 +48,6 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
     dst.controller[d, a] = src.controller[s, a]
     dst.task_agent[d, a] = src.task_agent[s, a]
     dst.alive[d, a] = src.alive[s, a]
-    dst.present[d, a] = src.present[s, a]
     dst.finished[d, a] = src.finished[s, a]
     dst.pos[d, a] = src.pos[s, a]
     dst.heading[d, a] = src.heading[s, a]
@@ -76,7 +79,6 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
         dst.reward_w[d, a, f] = src.reward_w[s, a, f]
     dst.idm_s[d, a] = src.idm_s[s, a]
     dst.idm_k[d, a] = src.idm_k[s, a]
-    dst.idm_accel[d, a] = src.idm_accel[s, a]
     dst.lane_err[d, a] = src.lane_err[s, a]
     dst.lane_offset[d, a] = src.lane_offset[s, a]
     dst.has_lane[d, a] = src.has_lane[s, a]
@@ -91,11 +93,23 @@ def copy_worlds_kernel(src: State, dst: State, src_idx: wp.array(dtype=wp.int32)
     dst.at_fault[d, a] = src.at_fault[s, a]
 
 
+@launcher(copy_worlds_kernel)
+def launch_copy_worlds(src: State, dst: State, src_idx: wp.array, dst_idx: wp.array, *, dim: Any,
+                       device: Any = None, record: bool = False) -> Any:
+    """Launch :func:`copy_worlds_kernel` over ``dim`` = (n, A): ``dst`` world ``dst_idx[i]`` <-
+    ``src`` world ``src_idx[i]``; ``src``, ``src_idx`` and ``dst_idx`` are read only.
+
+    Writes: dst.*
+    """
+    return launch(copy_worlds_kernel, launch_copy_worlds.kernels, dim, [src, dst, src_idx, dst_idx],
+                  device=device, record=record)
+
+
 @wp.kernel(module=KERNEL_MODULE, enable_backward=False)
 def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.array(dtype=wp.int32),
                  scenario: wp.array(dtype=wp.int32), slot_table: wp.array2d(dtype=wp.int32),
                  ctrl_table: wp.array2d(dtype=wp.int32), task_table: wp.array2d(dtype=wp.bool),
-                 conditions: wp.array3d(dtype=wp.float32), trig: wp.array2d(dtype=wp.vec2f), track_all: int):
+                 conditions: wp.array3d(dtype=wp.float32), track_all: int, trig: wp.array2d(dtype=wp.vec2f)):
     """Initialise world worlds[i] with pool scenario g = scenario[i]; slot a holds scenario
     agent slot_table[g, a] (-1 empty) driven by ctrl_table[g, a]; task_table[g, a] marks the
     controllable agents; conditions[i, a] are its raw conditions; trig[w, a] gets the (cos, sin)
@@ -131,7 +145,6 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
         state.conditions[w, a, f] = conditions[i, a, f]
     occupied = row >= 0
     state.alive[w, a] = occupied
-    state.present[w, a] = occupied
     state.finished[w, a] = False
     pos = wp.vec2f(0.0, 0.0)
     heading = float(0.0)
@@ -176,7 +189,6 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
         state.reward_w[w, a, k] = 0.0
     state.idm_s[w, a] = 0.0
     state.idm_k[w, a] = 0
-    state.idm_accel[w, a] = 0.0
     has_lane = bool(False)
     err = float(0.0)
     offset = float(0.0)
@@ -200,4 +212,18 @@ def reset_kernel(state: State, model: ModelArrays, params: Params, worlds: wp.ar
     state.at_fault[w, a] = False
 
 
-__all__ = ["copy_worlds_kernel", "reset_kernel"]
+@launcher(reset_kernel)
+def launch_reset(state: State, model: ModelArrays, params: Params, worlds: wp.array, scenario: wp.array,
+                 slot_table: wp.array, ctrl_table: wp.array, task_table: wp.array, conditions: wp.array,
+                 track_all: int, trig: wp.array, *, dim: Any, device: Any = None, record: bool = False) -> Any:
+    """Launch :func:`reset_kernel` over ``dim`` = (len(worlds), A); the staged worlds, scenarios
+    and conditions and the slot / controller / task tables are read only. Output: ``trig``.
+
+    Writes: *
+    """
+    return launch(reset_kernel, launch_reset.kernels, dim,
+                  [state, model, params, worlds, scenario, slot_table, ctrl_table, task_table, conditions,
+                   int(track_all)], [trig], device=device, record=record)
+
+
+__all__ = ["copy_worlds_kernel", "reset_kernel", "launch_copy_worlds", "launch_reset"]

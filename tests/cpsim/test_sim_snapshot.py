@@ -1,5 +1,6 @@
 """Snapshots: bit-exact round trips on CPU, a second Simulator, one-to-many broadcast,
-every State field copied, incompatible snapshots rejected; the CUDA variant when a GPU exists."""
+every State field copied and no StepScratch field (scratch is rewritten by every step before
+it is read), incompatible snapshots rejected; the CUDA variant when a GPU exists."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import warp as wp
 import cpsim
 from cpsim.config import Controller
 from cpsim.kernels.snapshot import copy_worlds_kernel
-from cpsim.state import state_field_names
+from cpsim.state import scratch_field_names, state_field_names
 from tests.cpsim.scenes import LANE_WIDTH, agent, make_scenario, small_pool
 
 W, A = 4, 4
@@ -53,6 +54,18 @@ def test_copy_kernel_copies_every_state_field():
     src = inspect.getsource(copy_worlds_kernel.func)
     for name in state_field_names():
         assert f"dst.{name}[d" in src, f"copy_worlds_kernel misses State.{name}"
+    for name in scratch_field_names():
+        assert name not in state_field_names() and f".{name}[" not in src, f"copy_worlds_kernel copies scratch {name}"
+
+
+def scribble(arrays, names, rows):
+    """Overwrite ``rows`` of every named field (CPU arrays are NumPy views)."""
+    for name in names:
+        arr = getattr(arrays, name).numpy()
+        if arr.dtype == np.bool_:
+            arr[rows] = ~arr[rows]
+        else:
+            arr[rows] = (arr[rows] + 7).astype(arr.dtype)
 
 
 def test_round_trip_is_bit_exact_and_restore_overwrites_every_field():
@@ -64,15 +77,13 @@ def test_round_trip_is_bit_exact_and_restore_overwrites_every_field():
     future = rng.integers(0, 12, size=(15, W, A))
     run(sim, future)
     reference = sim.state_dict()
-    # scribble over every field of world 2 (CPU arrays are NumPy views) before restoring
-    for name in state_field_names():
-        arr = getattr(sim.state, name).numpy()
-        if arr.dtype == np.bool_:
-            arr[2] = ~arr[2]
-        else:
-            arr[2] = (arr[2] + 7).astype(arr.dtype)
+    # scribble over every field of world 2 before restoring, and over the per-step scratch
+    # of every world (not restored: the next step rewrites it before reading it)
+    scribble(sim.state, state_field_names(), 2)
+    scribble(sim.scratch, scratch_field_names(), slice(None))
     sim.restore(snap, np.arange(W))
     assert_same(at_snapshot, sim.state_dict())
+    assert not set(scratch_field_names()) & set(sim.state_dict())
     run(sim, future)
     assert_same(reference, sim.state_dict())
 
