@@ -234,6 +234,16 @@ def grid_cell(m: ModelArrays, g: int, p: wp.vec2f, clamp: bool) -> int:
 
 
 @wp.func
+def segment_d2(m: ModelArrays, sid: int, p: wp.vec2f) -> float:
+    """Squared distance (m^2) from point p to road segment ``sid``."""
+    ap = p - m.seg_a[sid]
+    u = m.seg_dir[sid]
+    t = wp.clamp(wp.dot(ap, u), 0.0, m.seg_len[sid])
+    dv = ap - t * u
+    return wp.dot(dv, dv)
+
+
+@wp.func
 def lane_query(m: ModelArrays, g: int, p: wp.vec2f, heading: float, radius: float):
     """Nearest lane segment within ``radius`` of p (through the cell's lane candidates).
 
@@ -247,15 +257,11 @@ def lane_query(m: ModelArrays, g: int, p: wp.vec2f, heading: float, radius: floa
     if cell >= 0:
         for k in range(m.lane_start[cell], m.lane_start[cell + 1]):
             sid = m.lane_items[k]
-            ap = p - m.seg_a[sid]
-            u = m.seg_dir[sid]
-            t = wp.clamp(wp.dot(ap, u), 0.0, m.seg_len[sid])
-            dv = ap - t * u
-            d2 = wp.dot(dv, dv)
+            d2 = segment_d2(m, sid, p)
             if d2 <= best_d2 and (best < 0 or d2 < best_d2 or sid < best):
                 best = sid
                 best_d2 = d2
-                best_side = cross2(u, ap)
+                best_side = cross2(m.seg_dir[sid], p - m.seg_a[sid])
     offset = float(0.0)
     err = float(0.0)
     best_d = wp.sqrt(best_d2)
@@ -327,12 +333,7 @@ def lane_distance(m: ModelArrays, g: int, p: wp.vec2f) -> float:
                     iy = k
                 cell = first + iy * dims[0] + ix
                 for q in range(m.lane_start[cell], m.lane_start[cell + 1]):
-                    sid = m.lane_items[q]
-                    ap = p - m.seg_a[sid]
-                    u = m.seg_dir[sid]
-                    t = wp.clamp(wp.dot(ap, u), 0.0, m.seg_len[sid])
-                    dv = ap - t * u
-                    d2 = wp.dot(dv, dv)
+                    d2 = segment_d2(m, m.lane_items[q], p)
                     if d2 < best_d2:
                         best_d2 = d2
                         found = bool(True)
