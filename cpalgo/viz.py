@@ -223,7 +223,9 @@ def plot_search(record: SearchRecord, fig: Any = None, *, size: tuple[float, flo
 
     # legend: branches in panel order, then the symbols
     rank = {"factual": 0, "candidate": 1, "verify-factual": 2, "verify-candidate": 3}
-    handles.sort(key=lambda h: (rank[h[0].kind], record.branches.index(h[0])))
+    # by identity: single-style panels repeat a branch name, and == on traces compares arrays
+    order = {id(b): i for i, b in enumerate(record.branches)}
+    handles.sort(key=lambda h: (rank[h[0].kind], order[id(h[0])]))
     symbols = [
         Line2D([], [], ls="", marker="D", mfc="white", mec="black", label="root (restored state)"),
         Line2D([], [], ls="", marker="*", ms=13, mfc="#ffd700", mec="black", label="goal (dashed: goal radius)" if np.isfinite(record.goal_radius) else "goal"),

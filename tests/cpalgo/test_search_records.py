@@ -239,6 +239,20 @@ def test_the_figure_renders_with_one_line_per_branch(kept, tmp_path, status):
     assert png.stat().st_size > 10_000
 
 
+def test_the_figure_renders_a_single_style_panel_with_repeated_names(kept, tmp_path):
+    """cp-only-<style> panels repeat one style: branch traces share a name and are ordered by
+    identity, not by == (which would compare their arrays)."""
+    _, records = kept
+    r = _by_status(records, "verified")
+    style = r.panel[0]
+    branches = [dataclasses.replace(b, name=style if b.kind == "candidate" else b.name) for b in r.branches]
+    single = dataclasses.replace(r, panel=(style,) * len(r.panel), branches=branches)
+    fig = plot_search(single)
+    lines = [ln for ax in fig.axes for ln in ax.get_lines() if str(ln.get_gid()).startswith("branch:")]
+    assert len(lines) == len(branches)
+    assert render_search(single, tmp_path / "single.png").stat().st_size > 10_000
+
+
 def test_the_animation_shows_factual_and_retry_side_by_side(kept, tmp_path):
     _, records = kept
     r = _by_status(records, "verified")
