@@ -86,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-worlds", type=int, default=256, help="task-regimes simulated at once")
     p.add_argument("--max-agents", type=int, default=None)
+    p.add_argument("--coplayers", choices=("vehicles", "controllable"), default="vehicles",
+                   help="who follows the regime: every vehicle present at t0 (BehaviorBench, default) "
+                        "or only controllable ones (parked vehicles replay their logs)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--record", type=int, default=3,
                    help="record the first K tasks of each split and regime for the scene figure")
@@ -116,7 +119,8 @@ def run(argv: Sequence[str] | None = None) -> dict:
         raise ValueError(f"--reference: {args.reference!r} is not one of the policy labels {labels}")
     tasks = R.make_tasks(args.pool, args.split, args.n, seed=args.seed, pool_size=args.pool_size)
     cfg = R.EvalConfig(deploy_condition=deploy, max_worlds=args.max_worlds, max_agents=args.max_agents,
-                       seed=args.seed, device=args.device, progress=not args.no_progress)
+                       seed=args.seed, device=args.device, progress=not args.no_progress,
+                       coplayers=args.coplayers)
     ev = R.Evaluator(tasks, regimes, traffic_policy=args.traffic_policy, bc_policy=args.bc_policy,
                      ppo_policy=args.ppo_policy, config=cfg)
     for e in egos:  # observation layout of every checkpoint, before any run
@@ -131,7 +135,7 @@ def run(argv: Sequence[str] | None = None) -> dict:
         "command": "python -m cpalgo.evaluate " + " ".join(argv if argv is not None else sys.argv[1:]),
         "pool": str(args.pool), "split": args.split, "n": args.n, "seed": args.seed,
         "deploy": deploy if isinstance(deploy, str) else list(deploy), "regimes": regimes,
-        "traffic_policy": args.traffic_policy, "bc_policy": args.bc_policy,
+        "traffic_policy": args.traffic_policy, "bc_policy": args.bc_policy, "coplayers": args.coplayers,
         "ppo_policy": args.ppo_policy or (str(R.DEFAULT_PPO_PATH) if R.DEFAULT_PPO_PATH.is_file() else None),
         "policies": [{"label": r.label, "checkpoint": r.checkpoint, **r.meta} for r in results],
     }

@@ -396,13 +396,13 @@ class EvalConfig:
             capped at :data:`MAX_EVAL_AGENTS` = 128, BehaviorBench's limit; slots go to the
             ego, then controllable vehicles, then the other agents by distance to the ego).
         coplayers: who follows the traffic regime (``cpsim.envs.regimes.COPLAYER_RULES``):
-            ``controllable`` (default: vehicles present at t0 whose goal is >= 2 m away,
-            PufferDrive's controlled agents; parked vehicles replay their logs) or
-            ``vehicles`` (every vehicle present at t0 except the ego, BehaviorBench's rule as
-            DESIGN.md states it). ``vehicles`` is not the default yet: a parked vehicle's goal
-            is within the 2 m evaluation radius at t0, so the simulator scores it as arrived on
-            its first step and removes it (IDM and policy regimes) -- the scene would lose
-            its parked cars until the simulator exempts agents that start at their goal.
+            ``vehicles`` (default, BehaviorBench's rule: every vehicle present at t0 except
+            the ego, parked ones included) or ``controllable`` (vehicles present at t0 whose
+            goal is >= 2 m away, PufferDrive's controlled agents; parked vehicles replay their
+            logs; the rule of the tables produced before December 2026). A parked vehicle has
+            no task, so the simulator never scores it as arrived (its start lies inside the
+            2 m radius): under ``vehicles`` it stays in the scene and drives (or stays put)
+            as its regime decides.
         seed: simulator seed and mix-regime draw.
         device: simulator device (``cpu`` or ``cuda``).
         progress: show a progress bar over task-regimes.
@@ -416,7 +416,7 @@ class EvalConfig:
     deploy_condition: str | tuple[float, ...] = "normal"
     max_worlds: int = 256
     max_agents: int | None = None
-    coplayers: str = "controllable"
+    coplayers: str = "vehicles"
     seed: int = 0
     device: str = "cpu"
     progress: bool = True

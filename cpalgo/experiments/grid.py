@@ -24,6 +24,7 @@ A grid file is YAML (``zoo/experiments/paper_small.yml`` is the reference)::
       pool: procedural                  # or a folder of WOMD files
       seed: 0
       traffic_policy: null              # co-player checkpoint (default: the anchor)
+      coplayers: vehicles               # who follows the regime: vehicles (BehaviorBench) or controllable
       max_worlds: 256
 
 Every key is checked before anything runs: an unknown key, an unknown method, a budget
@@ -52,7 +53,7 @@ _TOP_KEYS = ("name", "anchor", "recipe", "budget", "seeds", "methods", "override
              "method_settings", "checkpoint_every", "torch_threads", "device", "resources", "evaluation",
              "description")
 _EVAL_KEYS = ("tasks", "splits", "regimes", "deployments", "pool", "pool_size", "seed", "traffic_policy",
-              "bc_policy", "max_worlds", "max_agents", "sim_config")
+              "bc_policy", "coplayers", "max_worlds", "max_agents", "sim_config")
 _RESOURCE_KEYS = ("num_cpus", "num_gpus", "memory")
 
 
@@ -92,6 +93,8 @@ class EvalSettings:
             included). Profile names (``normal``, ``halfway``, ``aggressive``, ...).
         pool, pool_size, seed: the evaluation pool (:func:`cpalgo.evaluate.make_tasks`).
         traffic_policy, bc_policy: co-player checkpoints (None: the anchor; the shipped BC model).
+        coplayers: who follows the regime (``EvalConfig.coplayers``): ``vehicles`` (every
+            vehicle present at t0, BehaviorBench) or ``controllable`` (the earlier rule).
         max_worlds, max_agents: simulator size of the evaluator.
         sim_config: SimConfig overrides of the evaluator (must give the training layout).
     """
@@ -105,6 +108,7 @@ class EvalSettings:
     seed: int = 0
     traffic_policy: str | None = None
     bc_policy: str | None = None
+    coplayers: str = "vehicles"
     max_worlds: int = 256
     max_agents: int | None = None
     sim_config: Mapping[str, Any] | None = None
@@ -172,8 +176,10 @@ class GridConfig:
             "recipe_sha1": hashlib.sha1(Path(self.recipe).read_bytes()).hexdigest(),
             "budget": self.budget, "overrides": _jsonable(self.overrides), "env": _jsonable(self.env),
             "worlds": self.worlds, "method_settings": _jsonable(self.method_settings),
+            # coplayers: controllable was the only rule before the setting existed; leaving it
+            # out keeps those grids' folders resumable
             "evaluation": _jsonable({k: v for k, v in dataclasses.asdict(self.evaluation).items()
-                                     if k != "deployments"}),
+                                     if k != "deployments" and not (k == "coplayers" and v == "controllable")}),
         }
 
     def as_dict(self) -> dict[str, Any]:
@@ -407,6 +413,9 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     bc = ev.get("bc_policy")
     bc = None if bc is None else _existing(bc, where, "evaluation.bc_policy", base, "checkpoint")
     max_agents = ev.get("max_agents")
+    coplayers = ev.get("coplayers", "vehicles")
+    if coplayers not in ("vehicles", "controllable"):
+        raise _fail(where, "evaluation.coplayers", f"expected 'vehicles' or 'controllable', got {coplayers!r}")
     sim_config = ev.get("sim_config")
     if sim_config is not None:
         sim_config = _mapping(sim_config, where, "evaluation.sim_config")
@@ -416,7 +425,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     evaluation = EvalSettings(
         tasks=tasks, splits=tuple(splits), regimes=regimes, deployments=deployments, pool=pool,
         pool_size=pool_size, seed=_whole(ev.get("seed", 0), where, "evaluation.seed", 0),
-        traffic_policy=traffic, bc_policy=bc,
+        traffic_policy=traffic, bc_policy=bc, coplayers=coplayers,
         max_worlds=_whole(ev.get("max_worlds", 256), where, "evaluation.max_worlds", 1),
         max_agents=None if max_agents is None else _whole(max_agents, where, "evaluation.max_agents", 1),
         sim_config=sim_config,

@@ -256,7 +256,8 @@ def _evaluator(grid: GridConfig, deployment: str) -> Any:
     if key not in _EVALUATORS:
         tasks = make_tasks(e.pool, e.split_arg, e.tasks, seed=e.seed, pool_size=e.pool_size)
         config = EvalConfig(deploy_condition=deployment, max_worlds=e.max_worlds, max_agents=e.max_agents,
-                            seed=e.seed, device=grid.device, progress=False, torch_threads=grid.torch_threads)
+                            seed=e.seed, device=grid.device, progress=False, torch_threads=grid.torch_threads,
+                            coplayers=e.coplayers)
         ev = Evaluator(tasks, e.regimes, traffic_policy=e.traffic_policy or grid.anchor, bc_policy=e.bc_policy,
                        config=config, sim_config=dict(e.sim_config) if e.sim_config else None)
         while len(_EVALUATORS) >= 3:

@@ -30,8 +30,9 @@ Which agents are co-players is the driver's ``coplayers`` rule (:data:`COPLAYER_
 * ``controllable`` (default; training): the *controllable* agents of a world (vehicles
   valid at t0 with a goal >= 2 m away, :attr:`Scenario.controllable`, PufferDrive's
   controlled agents) other than the ego slot;
-* ``vehicles`` (BehaviorBench's rule): every vehicle present at t0 other than the ego slot,
-  parked ones included.
+* ``vehicles`` (BehaviorBench's rule; the evaluator's default): every vehicle present at t0
+  other than the ego slot, parked ones included. A parked vehicle has no task, so the
+  simulator never scores it as arrived and it stays in the scene.
 
 The remaining agents (pedestrians, cyclists, and under ``controllable`` the parked
 vehicles) keep the simulator's default controller (log replay). Agents that appear after

@@ -12,8 +12,9 @@ goal and timeout only; ``Simulator(track_all=True)`` tracks everyone):
   rules on the pre-contact state, ``cpsim.kernels.geometry``);
 * off-road (vehicles only): a road-edge segment of the cell's candidate list hits the box at
   its current pose or crosses a corner path from the previous pose;
-* goal: |pos - goal| < goal_radius and |speed| <= goal_speed (the agent's condition, or the
-  fixed criterion of ``SimConfig.goal_criterion`` for every agent);
+* goal (task agents only; an agent without a task, e.g. a parked car driven by a traffic
+  regime, never arrives): |pos - goal| < goal_radius and |speed| <= goal_speed (the agent's
+  condition, or the fixed criterion of ``SimConfig.goal_criterion`` for every agent);
 * the nearest lane (heading error, lateral offset) for metrics, reward and observation.
 
 Then: outcome (sticky; collision > off-road > goal within one step), metrics accumulators,
@@ -317,7 +318,10 @@ def agent_events(state: State, scratch: StepScratch, model: ModelArrays, params:
     if params.goal_fixed != 0:  # one goal test for everyone (SimConfig.goal_criterion)
         gr = params.goal_radius
         gs = params.goal_speed
-    reached = wp.length(p - state.goal[w, a]) < gr and wp.abs(v) <= gs
+    # Only task agents have a goal: a vehicle parked at its goal (no task, start within 2 m of
+    # its goal) that the evaluator hands to a traffic regime would otherwise "arrive" on its
+    # first step and leave the scene (issue 17, item 10).
+    reached = state.task_agent[w, a] and wp.length(p - state.goal[w, a]) < gr and wp.abs(v) <= gs
     goal_now = reached and state.goal_step[w, a] < 0
     # ---------------------------------------------------------------- lane (tracked only)
     has_lane = bool(False)

@@ -346,6 +346,27 @@ def test_coplayer_rule_decides_who_follows_the_regime(tasks, rule):
         R.EvalConfig(coplayers="everyone")
 
 
+def test_parked_coplayers_stay_in_the_scene_without_a_goal(tasks):
+    """``vehicles``: a parked vehicle starts inside its 2 m evaluation goal radius. It has no
+    task, so the simulator never scores it as arrived: under IDM it stays parked and present
+    for the whole episode instead of leaving the scene on its first step."""
+    sc = with_extra_agents(tasks[0].scenario, 5, "parked")
+    ev = R.Evaluator([R.Task("random", 0, sc)], ["idm"], config=R.EvalConfig(progress=False, coplayers="vehicles"))
+    ev.sim.reset(scenario_index=np.array([0]))
+    ev._drivers["idm"].assign(ev.sim, np.array([0]))
+    idx = ev.sim.agent_index.numpy()[0]
+    parked = np.zeros(idx.size, bool)
+    parked[idx >= 0] = idx[idx >= 0] >= tasks[0].scenario.num_agents
+    parked &= ev.sim.controllers.numpy()[0] == 2  # IDM: the five parked vehicles, not the pedestrian
+    assert parked.sum() == 5
+    xy0 = ev.sim.state.pos.numpy()[0][parked].copy()
+    for _ in range(5):
+        ev.sim.step(np.zeros((1, ev.sim.max_agents), np.int64))
+    assert ev.sim.state.alive.numpy()[0][parked].all()
+    assert (ev.sim.metrics["goal_step"][0].cpu().numpy()[parked] == -1).all()
+    np.testing.assert_allclose(ev.sim.state.pos.numpy()[0][parked], xy0, atol=1e-3)  # IDM v0 = 0: parked
+
+
 def test_ego_is_the_task_agent_not_the_sdc(tasks):
     """A task whose ego is another controllable agent: slot 0 is that agent, starts at its
     logged t0 pose and is scored against its own goal."""

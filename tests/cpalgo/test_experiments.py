@@ -78,6 +78,7 @@ def grid_doc(files, **changes):
     ({"overrides": {"learning_rate": "sometimes(3)"}}, "overrides.learning_rate"),
     ({"env": {"num_wheels": 3}}, "env.num_wheels"),
     ({"seeds": [0, 0]}, "seeds: lists a seed twice"),
+    ({"evaluation": {"coplayers": "everyone"}}, "evaluation.coplayers: expected 'vehicles' or 'controllable'"),
 ])
 def test_bad_grids_fail_before_anything_runs_naming_the_key(files, tmp_path, change, message):
     doc = grid_doc(files)
@@ -119,6 +120,19 @@ def test_shipped_paper_grid_is_valid_and_holds_every_method():
     assert set(grid.evaluation.deployments) == {"normal", "halfway", "aggressive"}
     assert set(grid.evaluation.deployments["aggressive"]) == {"anchor", "ppo-continue", "distill-aggressive",
                                                                "distill-cautious", "counterplay"}
+
+
+def test_coplayer_rule_defaults_to_vehicles_and_reaches_the_fingerprint(files):
+    """``evaluation.coplayers``: BehaviorBench's ``vehicles`` by default; ``controllable`` (the
+    only rule before the setting existed) leaves the fingerprint as it was, so older folders
+    still resume, while switching rules changes it."""
+    default = load_grid(grid_doc(files))
+    assert default.evaluation.coplayers == "vehicles"
+    legacy = load_grid(grid_doc(files, evaluation={**grid_doc(files)["evaluation"], "coplayers": "controllable"}))
+    assert legacy.evaluation.coplayers == "controllable"
+    assert "coplayers" not in legacy.run_fingerprint()["evaluation"]
+    assert default.run_fingerprint()["evaluation"]["coplayers"] == "vehicles"
+    assert load_grid("zoo/experiments/paper_small.yml").evaluation.coplayers == "controllable"
 
 
 # ----------------------------------------------------------------------------- resume
