@@ -87,6 +87,16 @@ def _unit_float(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value < 0.0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
 def _condition(text: str) -> str | list[float]:
     """A profile name or 10 comma-separated raw values, validated."""
     from cpsim.conditions import resolve_condition
@@ -234,8 +244,15 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         overrides = {"scenarios": pool + list(real), "family": None, "num_scenarios": None}
     env = _make_env(recipe, args.seed, **overrides)
     steps = args.timesteps or recipe.n_timesteps
-    model = RecurrentPPO(recipe.policy, env, seed=args.seed, verbose=args.verbose,
-                         tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
+    if args.teacher_coef > 0:  # PPO with the teacher's actions as an auxiliary imitation term
+        from cpalgo.teacher_ppo import TeacherPPO
+
+        model = TeacherPPO(recipe.policy, env, teacher=args.teacher, teacher_coef=args.teacher_coef,
+                           teacher_coef_final=args.teacher_coef_final, seed=args.seed, verbose=args.verbose,
+                           tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
+    else:
+        model = RecurrentPPO(recipe.policy, env, seed=args.seed, verbose=args.verbose,
+                             tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
     if args.init:  # continue from an earlier anchor (same recipe network)
         try:
             model.set_parameters(args.init, exact_match=True)
@@ -259,6 +276,10 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     if steps:
         model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0
+    if args.teacher_coef > 0:  # ship a plain RecurrentPPO with the same weights
+        from cpalgo.teacher_ppo import export_recurrent_ppo
+
+        model = export_recurrent_ppo(model, recipe.policy, env, seed=args.seed, **recipe.algo_kwargs)
     if args.drop_optimizer_state:  # Adam's moments double the file; a later run restarts them
         policy = model.policy
         policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
@@ -567,6 +588,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="probability that the expert drives in the first DAgger round (lower it when "
                          "continuing an imitation run with --init)")
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
+    ta.add_argument("--teacher-coef", type=_non_negative_float, default=0.0, metavar="C",
+                    help="PPO with the --teacher's actions as an auxiliary imitation term of weight C "
+                         "(cpalgo.teacher_ppo.TeacherPPO; 0: plain RecurrentPPO)")
+    ta.add_argument("--teacher-coef-final", type=_non_negative_float, default=None, metavar="C",
+                    help="the imitation weight at the end of PPO (linear from --teacher-coef; default: constant)")
     ta.add_argument("--drop-optimizer-state", action="store_true",
                     help="save the final checkpoint with a fresh optimiser (weights only: about half the size)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256, metavar="N",

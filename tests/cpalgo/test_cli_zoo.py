@@ -177,6 +177,22 @@ def test_train_anchor_imitation_warm_start(tmp_path):
         cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--imitate", "1", "--imitate-beta", "2"])
 
 
+def test_train_anchor_with_the_teachers_imitation_term_ships_a_plain_recurrent_ppo(tmp_path):
+    """--teacher-coef: the PPO stage is cpalgo.teacher_ppo.TeacherPPO; the saved anchor is a
+    plain sb3-contrib RecurrentPPO with its weights."""
+    from sb3_contrib import RecurrentPPO
+
+    cfg = tiny_recipe(tmp_path, ZOO_DIR / "anchor.yml")
+    out = tmp_path / "teacher.zip"
+    assert cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--teacher", "reactive",
+                     "--teacher-coef", "0.5", "--teacher-coef-final", "0.1", "--timesteps", "300",
+                     "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
+    assert type(RecurrentPPO.load(out, device="cpu")) is RecurrentPPO
+    assert json.loads((tmp_path / "teacher.json").read_text())["timesteps"] >= 300
+    with pytest.raises(SystemExit):
+        cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--teacher-coef", "-1"])
+
+
 def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch, capsys):
     recipe = tiny_recipe(tmp_path, ZOO_DIR / "counterplay.yml")
     monkeypatch.chdir(tmp_path)
