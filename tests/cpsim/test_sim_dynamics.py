@@ -227,9 +227,9 @@ def test_replay_follows_log_and_vanishes_when_log_ends():
         sim.step(np.full((1, 2), 7))
         np.testing.assert_allclose(sim.xy[0, 1].numpy(), sc.log_xy[1, t], atol=1e-6)
         assert sim.speed[0, 1].item() == pytest.approx(np.linalg.norm(sc.log_velocity[1, t]), abs=1e-5)
-        # it reached its goal (1 m from its start) at once: recorded, but replay is never removed
+        # its goal is 1 m from its start: no task, so it never arrives (and replay is never removed)
         assert sim.alive[0, 1] and not sim.done[0, 1]
-    assert sim.outcome[0, 1].item() == cpsim.Outcome.GOAL and sim.metrics["goal_step"][0, 1].item() == 1
+    assert sim.outcome[0, 1].item() == cpsim.Outcome.RUNNING and sim.metrics["goal_step"][0, 1].item() == -1
     sim.step(np.full((1, 2), 7))  # log step 6 is invalid: the agent leaves
     assert not sim.alive[0, 1] and sim.done[0, 1] and sim.truncated[0, 1]
     assert not sim.terminated[0, 1]
