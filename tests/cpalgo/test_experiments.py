@@ -132,7 +132,8 @@ def test_coplayer_rule_defaults_to_vehicles_and_reaches_the_fingerprint(files):
     assert legacy.evaluation.coplayers == "controllable"
     assert "coplayers" not in legacy.run_fingerprint()["evaluation"]
     assert default.run_fingerprint()["evaluation"]["coplayers"] == "vehicles"
-    assert load_grid("zoo/experiments/paper_small.yml").evaluation.coplayers == "controllable"
+    assert load_grid("zoo/experiments/paper_small.yml").evaluation.coplayers == "vehicles"
+    assert load_grid("docs/results/paper_core.yml").evaluation.coplayers == "controllable"  # a record
 
 
 # ----------------------------------------------------------------------------- resume
