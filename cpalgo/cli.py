@@ -437,7 +437,7 @@ def _write_searches(model: Any, ckpt_path: Path) -> dict[str, str]:
 
 
 def cmd_searches(args: argparse.Namespace) -> int:
-    from cpalgo.counterplay.records import format_table, load_records, searches_path
+    from cpalgo.counterplay.records import failure_anatomy, format_anatomy, format_table, load_records, searches_path
 
     path = searches_path(args.model)
     if not path.is_file():
@@ -450,6 +450,7 @@ def cmd_searches(args: argparse.Namespace) -> int:
         print(f"{len(records)} searches kept in {path}")
         if records:
             print(format_table(records))
+            print(format_anatomy(failure_anatomy(records)))
         return 0
     if not 0 <= args.show < len(records):
         raise UsageError(f"--show: index {args.show} outside 0..{len(records) - 1} ({len(records)} searches kept)")

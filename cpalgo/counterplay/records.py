@@ -49,6 +49,8 @@ from cpalgo.counterplay.search import BranchOutcome, admit
 from cpsim.atomic import atomic_path
 
 __all__ = [
+    "failure_anatomy",
+    "format_anatomy",
     "BranchTrace",
     "SearchRecord",
     "SearchRecords",
@@ -601,6 +603,60 @@ def load_records(path: str | os.PathLike) -> list[SearchRecord]:
 # ============================================================================ table
 TABLE_COLUMNS: tuple[str, ...] = ("gen", "scenario", "focal", "failure", "root", "depth", "factual", "admissible",
                                   "teacher", "verified")
+
+
+def failure_anatomy(records: Sequence[SearchRecord], stuck_m: float = 5.0) -> dict[str, float]:
+    """What the searched failures were and how much room their roots left (kept searches).
+
+    A retry can only repair what a style change can change from its root. This summary tells
+    where that room is missing: timeouts in which the focal agent passed inside its goal
+    radius (it arrived, but faster than its goal speed allows), timeouts in which it barely
+    moved after the root (stuck or crawling), and how many decisions the root left.
+
+    Args:
+        records: kept searches (:func:`search_records`, :func:`load_records`).
+        stuck_m: a focal agent that drove less than this (m) from the root to the end of
+            the factual branch counts as stuck.
+    Returns:
+        ``searches``; ``timeout`` / ``collision`` / ``offroad`` / ``goal``: the factual
+        branch's focal outcome, counts (a ``goal`` is a lucky factual rerun);
+        ``timeout_passed_goal`` and ``timeout_stuck``: counts among the timeouts;
+        ``decisions_after_root_median`` / ``_mean``: decisions from the root to the end of
+        the factual branch; ``candidates_completed``: share of the candidate branches whose
+        focal agent reached its goal (NaN when there are none).
+    """
+    out: dict[str, float] = {"searches": float(len(records)), "timeout": 0.0, "collision": 0.0, "offroad": 0.0,
+                             "goal": 0.0, "timeout_passed_goal": 0.0, "timeout_stuck": 0.0}
+    lengths: list[int] = []
+    completed = candidates = 0
+    for r in records:
+        f, a = r.factual, int(r.focal)
+        out[f.outcome] = out.get(f.outcome, 0.0) + 1.0
+        lengths.append(int(f.length))
+        path = f.xy[f.valid[:, a], a]  # (n, 2) focal positions the branch kept
+        if f.outcome == "timeout" and len(path):
+            gap = np.linalg.norm(path - r.goal[a][None, :], axis=1).min()
+            out["timeout_passed_goal"] += float(np.isfinite(r.goal_radius) and gap < r.goal_radius)
+            out["timeout_stuck"] += float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum() < stuck_m)
+        for b in r.branches:
+            if b.kind == "candidate":
+                candidates += 1
+                completed += b.outcome == "goal"
+    out["decisions_after_root_median"] = float(np.median(lengths)) if lengths else float("nan")
+    out["decisions_after_root_mean"] = float(np.mean(lengths)) if lengths else float("nan")
+    out["candidates_completed"] = completed / candidates if candidates else float("nan")
+    return out
+
+
+def format_anatomy(anatomy: dict[str, float]) -> str:
+    """:func:`failure_anatomy` as two plain-text lines."""
+    t = anatomy["timeout"]
+    share = (lambda k: f"{100 * anatomy[k] / t:.0f}%") if t else (lambda k: "-")
+    return (f"factual failures: {anatomy['timeout']:.0f} timeouts ({share('timeout_passed_goal')} passed inside the "
+            f"goal radius too fast, {share('timeout_stuck')} stuck), {anatomy['collision']:.0f} collisions, "
+            f"{anatomy['offroad']:.0f} off-road, {anatomy['goal']:.0f} completed on the rerun\n"
+            f"roots: median {anatomy['decisions_after_root_median']:.0f} decisions before the end; candidates "
+            f"completed: {100 * anatomy['candidates_completed']:.1f}%")
 
 
 def format_table(records: Sequence[SearchRecord]) -> str:

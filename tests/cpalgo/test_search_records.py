@@ -20,6 +20,8 @@ from cpalgo.counterplay.branches import BranchResult  # noqa: E402
 from cpalgo.counterplay.records import (  # noqa: E402
     SearchRecord,
     SearchRecords,
+    failure_anatomy,
+    format_anatomy,
     format_table,
     load_records,
     save_records,
@@ -265,6 +267,37 @@ def test_the_animation_shows_factual_and_retry_side_by_side(kept, tmp_path):
         render_search(r, tmp_path / "x.txt")
 
 
+# ---------------------------------------------------------------------------- anatomy
+def test_failure_anatomy_counts_what_the_searched_failures_were(kept):
+    _, records = kept
+    a = failure_anatomy(records)
+    assert a["searches"] == len(records)
+    assert sum(a[k] for k in ("timeout", "collision", "offroad", "goal")) == len(records)
+    assert a["decisions_after_root_median"] == np.median([r.factual.length for r in records])
+    assert 0.0 <= a["candidates_completed"] <= 1.0
+    assert "decisions before the end" in format_anatomy(a)
+    # hand-made factual timeouts of one record: through the goal at 2 m spacing, then parked 30 m away
+    r = next(r for r in records if r.factual.length >= 2)
+    f, focal = r.factual, r.focal
+    n = f.xy.shape[0]
+    valid = f.valid.copy()
+    valid[:, focal] = True
+
+    def with_path(path):
+        xy = f.xy.copy()
+        xy[:, focal] = path
+        fact = dataclasses.replace(f, xy=xy, valid=valid, outcome="timeout")
+        return dataclasses.replace(r, branches=[fact if b is f else b for b in r.branches], goal_radius=2.0)
+
+    goal = r.goal[focal]
+    through = goal[None] + np.stack([3.0 * (np.arange(n) - n // 2), np.full(n, 0.5)], -1)  # 3 m steps
+    one = failure_anatomy([with_path(through.astype(np.float32))])
+    assert (one["timeout"], one["timeout_passed_goal"], one["timeout_stuck"]) == (1, 1, 0)
+    parked = np.repeat((goal + 30.0)[None], n, 0).astype(np.float32)
+    one = failure_anatomy([with_path(parked)])
+    assert (one["timeout"], one["timeout_passed_goal"], one["timeout_stuck"]) == (1, 0, 1)
+
+
 # ---------------------------------------------------------------------------- command
 def test_the_searches_command_lists_what_was_kept(kept, tmp_path, capsys):
     model, records = kept
@@ -276,8 +309,9 @@ def test_the_searches_command_lists_what_was_kept(kept, tmp_path, capsys):
     header = table[0].split()
     for column in ("scenario", "failure", "depth", "admissible", "teacher", "verified"):
         assert column in header
-    rows = table[2:]
+    rows, anatomy = table[2:-2], table[-2:]
     assert len(rows) == len(records)
+    assert anatomy[0].startswith("factual failures:") and anatomy[1].startswith("roots: median")
     for k, (row, r) in enumerate(zip(rows, records)):
         cells = row.split()
         assert cells[0] == str(k) and r.scenario_id in cells
