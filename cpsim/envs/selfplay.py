@@ -143,7 +143,10 @@ class SelfPlayVecEnv(VecEnv):
         * An active slot whose agent ends its episode on this step (goal, collision,
           off-road, timeout) emits ``done=True``, its last reward,
           ``infos[i]["terminal_observation"]`` (the observation at the end),
-          ``"TimeLimit.truncated"`` (True for timeouts), ``"is_success"`` (goal reached),
+          ``"TimeLimit.truncated"`` (True for timeouts, so SB3 bootstraps them with the
+          critic; False with ``timeout_terminal=True``: the observation carries the time
+          left, so the deadline is part of the task and a timeout is a terminal failure),
+          ``"is_success"`` (goal reached),
           ``"outcome"`` ("goal" / "collision" / "offroad" / "timeout") and the episode's
           BehaviorBench metrics (:func:`cpsim.scoring.episode_scores`):
           ``"at_fault_collision"``, ``"comfort"``, ``"lane_align"``, ``"lane_center"`` and
@@ -175,7 +178,7 @@ class SelfPlayVecEnv(VecEnv):
                  *, family: str | None = None, womd_dir: str | None = None, num_scenarios: int | None = None,
                  dynamics: str | None = None, condition: str | Sequence[float] | np.ndarray = "train",
                  seed: int = 0, config: Any = None, device: str = "cpu", render_mode: str | None = None,
-                 render_worlds: int = 4, **config_overrides: Any):
+                 render_worlds: int = 4, timeout_terminal: bool = False, **config_overrides: Any):
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array', 'human']")
         self.scenarios = resolve_scenarios(scenarios, family=family, womd_dir=womd_dir,
@@ -190,6 +193,9 @@ class SelfPlayVecEnv(VecEnv):
         else:
             self.fixed_condition = resolve_condition(condition, "condition")
         self.condition = condition
+        if not isinstance(timeout_terminal, (bool, np.bool_)):
+            raise ValueError(f"timeout_terminal: expected a bool, got {timeout_terminal!r}")
+        self.timeout_terminal = bool(timeout_terminal)
         self.render_mode = render_mode
         self.render_worlds = int(render_worlds)
         self._renderer = None
@@ -290,7 +296,9 @@ class SelfPlayVecEnv(VecEnv):
             for k, i in enumerate(done_idx.tolist()):
                 info = infos[i]
                 info["terminal_observation"] = terminal_obs[k]
-                info["TimeLimit.truncated"] = bool(truncated[k])
+                # a deadline the observation shows (time_left) is part of the task: with
+                # timeout_terminal a timeout is a failure, and PPO does not bootstrap it
+                info["TimeLimit.truncated"] = bool(truncated[k]) and not self.timeout_terminal
                 info["is_success"] = names[k] == "goal"
                 info["outcome"] = names[k]
                 for key in _SCORE_KEYS:

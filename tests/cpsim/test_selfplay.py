@@ -122,6 +122,30 @@ def test_world_reset_after_timeout_gives_active_slots(env):
     assert timed_out_worlds
 
 
+def test_timeout_terminal_ends_timeouts_without_truncation(scenarios):
+    """timeout_terminal=True: the same timeouts, reported as terminal (no TimeLimit.truncated),
+    so SB3 does not bootstrap them; other outcomes unchanged."""
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    outcomes = {}
+    for terminal in (False, True):
+        e = SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, seed=3, episode_steps=STEPS,
+                           timeout_terminal=terminal)
+        e.reset()
+        seen = []
+        for _ in range(STEPS):
+            _, _, done, infos = e.step(np.full(e.num_envs, 7, np.int64))
+            seen += [(i, infos[i]["outcome"], infos[i]["TimeLimit.truncated"]) for i in np.flatnonzero(done)
+                     if "outcome" in infos[i]]
+        e.close()
+        outcomes[terminal] = seen
+    assert [s[:2] for s in outcomes[False]] == [s[:2] for s in outcomes[True]]
+    assert any(o == "timeout" and t for _, o, t in outcomes[False])
+    assert not any(t for _, _, t in outcomes[True])
+    with pytest.raises(ValueError, match="timeout_terminal"):
+        SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, timeout_terminal="yes")
+
+
 def test_seed_makes_resets_reproducible(env):
     env.seed(11)
     a = env.reset()
