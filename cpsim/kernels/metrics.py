@@ -5,7 +5,7 @@ slots, CPU) run :func:`agent_events` after the motion and ``prepare_kernel``. Fo
 *tracked* agent present in the step (POLICY, IDM, task agents, slot 0; see
 :func:`cpsim.kernels.observation.tracked_role`) it tests, against the poses after the motion
 (*scenery*, the other REPLAY / STATIC agents, gets collisions with tracked agents, off-road,
-goal and timeout only; ``Simulator(track_all=True)`` tracks everyone):
+and timeout only (no task, so no goal); ``Simulator(track_all=True)`` tracks everyone):
 
 * collision with any other present collidable agent (SAT, distance pre-filter; scaled boxes),
   the partner being the nearest colliding one, and its collision case / fault (BehaviorBench's
@@ -247,7 +247,7 @@ def agent_events(state: State, scratch: StepScratch, model: ModelArrays, params:
     agents stopped by the ``stop`` rule, slot 0) get everything below. Scenery (REPLAY /
     STATIC agents without a task) is only tested for collisions with tracked agents (so a
     collision of the ego or a co-player with a parked or replayed car is recorded on both
-    sides, partner and fault included), off-road, goal and timeout: no lane query, no metrics
+    sides, partner and fault included), off-road and timeout (agents without a task have no goal): no lane query, no metrics
     accumulators (they stay 0), reward 0. Nothing reads those for scenery, and scenery
     outnumbers the tracked agents about 5 to 1 on WOMD.
     """
