@@ -7,9 +7,10 @@ Example::
 
 ``--policy`` takes ``PATH`` or ``LABEL=PATH`` (repeat it; the same label on several
 checkpoints aggregates them as seeds: mean and std). ``PATH`` may also be a built-in
-controller: ``expert`` (log replay) or ``idm``. Everything is validated before the first
-simulator step; on a bad input the command exits with status 2 and a message, and no
-result folder is written. The result folder is written atomically at the end.
+controller: ``expert`` (log replay) or ``idm``, or an imitation teacher of
+``cpsim.expert`` (``reactive``, ``tracking``) driving the ego under the deployment
+condition. Everything is validated before the first simulator step; on a bad input the
+command exits with status 2 and a message, and no result folder is written. The result folder is written atomically at the end.
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 description="BehaviorBench-style evaluation over traffic regimes.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     p.add_argument("--policy", action="append", required=True, metavar="[LABEL=]PATH",
-                   help="ego policy checkpoint (.zip SB3 / CounterPlay, .pt BC) or 'expert' / 'idm'; repeatable")
+                   help="ego policy checkpoint (.zip SB3 / CounterPlay, .pt BC), a built-in controller "
+                        "('expert' = log replay, 'idm') or an imitation teacher ('reactive', 'tracking'); repeatable")
     p.add_argument("--regimes", nargs="+", default=["all"],
                    help="traffic regimes (space or comma separated; default all eight: "
                         "idm selfplay bc replay aggressive normal cautious mix)")

@@ -192,6 +192,9 @@ class EgoPolicy:
     def reset(self, n: int) -> None:
         """Start ``n`` new episodes (clears recurrent memory)."""
 
+    def bind(self, sim: Any) -> None:
+        """Called once per chunk after the ego's condition is set (teachers read the simulator)."""
+
     def act(self, obs: np.ndarray, episode_start: np.ndarray) -> np.ndarray:
         """(n, D) float32 observations -> (n,) int64 deterministic actions."""
         return np.zeros(obs.shape[0], np.int64)
@@ -207,6 +210,41 @@ class ControllerEgo(EgoPolicy):
         self.label = "expert-replay" if key in ("replay", "expert") else key
         self.checkpoint = f"controller:{key}"
         self.controller = EGO_CONTROLLERS[key]
+
+
+class TeacherEgo(EgoPolicy):
+    """The ego is driven by an imitation teacher of :mod:`cpsim.expert` (``reactive`` or
+    ``tracking``), under the deployment condition: the reference a student policy imitates.
+
+    The teacher reads the simulator (logged route, other vehicles, the ego's live condition),
+    so it is rebuilt on every chunk (:meth:`bind`); its actions are batched over the chunk's
+    worlds and agents, and only slot 0 (the ego) is used.
+    """
+
+    def __init__(self, name: str):
+        from cpsim.expert import EXPERTS
+
+        key = name.lower()
+        if key not in EXPERTS:
+            raise ValueError(f"policy: unknown teacher {name!r}; accepted: {list(EXPERTS)}")
+        self.name = key
+        self.label = f"{key}-teacher"
+        self.checkpoint = f"teacher:{key}"
+        self._expert: Any = None
+
+    def bind(self, sim: Any) -> None:
+        from cpsim.expert import make_expert
+
+        self._expert = make_expert(self.name, sim)
+
+    def act(self, obs: np.ndarray, episode_start: np.ndarray) -> np.ndarray:
+        if self._expert is None:
+            raise RuntimeError("TeacherEgo.act before bind(sim)")
+        return _np(self._expert.actions())[:, 0].astype(np.int64)
+
+
+#: Ego "policies" that are imitation teachers (``cpsim.expert``), by name.
+EGO_TEACHERS: dict[str, str] = {"reactive": "reactive", "tracking": "tracking"}
 
 
 class ModelEgo(EgoPolicy):
@@ -296,13 +334,19 @@ def _saved_by(path: Path, cls: type, parent: type) -> bool:
 
 def as_ego_policy(policy: Any, label: str | None = None) -> EgoPolicy:
     """Wrap a policy spec: an :class:`EgoPolicy`, a built-in controller name
-    (``replay``/``expert``, ``idm``, ``static``), a checkpoint path, an SB3 model or a callable."""
+    (``replay``/``expert``, ``idm``, ``static``), a teacher name (``reactive``, ``tracking``),
+    a checkpoint path, an SB3 model or a callable."""
     if isinstance(policy, EgoPolicy):
         if label:
             policy.label = label
         return policy
     if isinstance(policy, (str, os.PathLike)):
         s = str(policy)
+        if s.lower() in EGO_TEACHERS:
+            ego = TeacherEgo(EGO_TEACHERS[s.lower()])
+            if label:
+                ego.label = label
+            return ego
         if s.lower() in EGO_CONTROLLERS:
             ego = ControllerEgo(s)
             if label:
@@ -314,7 +358,7 @@ def as_ego_policy(policy: Any, label: str | None = None) -> EgoPolicy:
         return ModelEgo(policy, label or type(policy).__name__, checkpoint=type(policy).__name__)
     if callable(policy):
         return FunctionEgo(policy, label or getattr(policy, "__name__", "callable"))
-    raise ValueError(f"policy: expected a checkpoint path, controller name, SB3 model or callable, "
+    raise ValueError(f"policy: expected a checkpoint path, controller or teacher name, SB3 model or callable, "
                      f"got {type(policy).__name__}")
 
 
@@ -640,6 +684,7 @@ class Evaluator:
                 drv.assign(sim, worlds)
                 active.append(drv)
         ego.reset(W)
+        ego.bind(sim)
         episode_start = np.ones(W, bool)
         keep = [i for i, r in enumerate(world_rows[:k]) if int(r) in record]
         rec: dict[str, list[np.ndarray]] = {"xy": [], "heading": [], "alive": [], "speed": [], "velocity": []}

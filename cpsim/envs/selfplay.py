@@ -12,11 +12,19 @@ from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from cpsim.arrays import to_numpy as _np
-from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions
+from cpsim.conditions import (
+    FIELD_INDEX,
+    NUM_CONDITION_FIELDS,
+    TASK_FIELDS,
+    criterion_task_fields,
+    resolve_condition,
+    sample_conditions,
+)
 from cpsim.scoring import episode_scores
 
 OUTCOME_NAMES: tuple[str, ...] = ("running", "goal", "collision", "offroad", "timeout")
 CONDITION_MODES = ("train",)
+_TASK_INDEX = [FIELD_INDEX[f] for f in TASK_FIELDS]
 #: procedural scenarios generated when no scenarios are given (``num_scenarios`` overrides)
 DEFAULT_POOL_SIZE = 16
 #: episode metrics in the info of an agent's last step (:func:`cpsim.scoring.episode_scores`)
@@ -124,6 +132,12 @@ class SelfPlayVecEnv(VecEnv):
         condition: "train" (default: every agent's condition is drawn from p_train at each
             world reset), a profile name (e.g. "normal") or a raw 10-vector, fixed for
             every agent (deployment-style runs).
+        eval_task_share: with ``condition="train"``, the share of agents (in [0, 1], drawn
+            independently per agent at each world reset) whose task fields (goal radius, goal
+            speed) are the evaluation criterion's (:func:`cpsim.conditions.criterion_task_fields`:
+            2 m, 30 m/s) instead of p_train draws; their style fields stay p_train draws.
+            p_train's radius is U(2, 12) m, so the evaluator's 2 m sits at the edge of what a
+            policy trains on; an anchor recipe can oversample it (0: plain p_train).
         seed: seeds scenario draws and condition draws (and the simulator).
         config: a ``SimConfig`` or mapping; other keyword arguments override its fields.
         device: "cpu" or "cuda[:n]".
@@ -178,7 +192,8 @@ class SelfPlayVecEnv(VecEnv):
                  *, family: str | None = None, womd_dir: str | None = None, num_scenarios: int | None = None,
                  dynamics: str | None = None, condition: str | Sequence[float] | np.ndarray = "train",
                  seed: int = 0, config: Any = None, device: str = "cpu", render_mode: str | None = None,
-                 render_worlds: int = 4, timeout_terminal: bool = False, **config_overrides: Any):
+                 render_worlds: int = 4, timeout_terminal: bool = False, eval_task_share: float = 0.0,
+                 **config_overrides: Any):
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array', 'human']")
         self.scenarios = resolve_scenarios(scenarios, family=family, womd_dir=womd_dir,
@@ -196,6 +211,13 @@ class SelfPlayVecEnv(VecEnv):
         if not isinstance(timeout_terminal, (bool, np.bool_)):
             raise ValueError(f"timeout_terminal: expected a bool, got {timeout_terminal!r}")
         self.timeout_terminal = bool(timeout_terminal)
+        share = float(eval_task_share) if isinstance(eval_task_share, (int, float, np.number)) else float("nan")
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"eval_task_share: expected a number in [0, 1], got {eval_task_share!r}")
+        if share > 0.0 and self.fixed_condition is not None:
+            raise ValueError("eval_task_share: only applies to condition='train' (a fixed condition "
+                             "already has its task fields)")
+        self.eval_task_share = share
         self.render_mode = render_mode
         self.render_worlds = int(render_worlds)
         self._renderer = None
@@ -217,6 +239,9 @@ class SelfPlayVecEnv(VecEnv):
         scenario_index = self._rng.integers(0, len(self.scenarios), size=k)
         if self.fixed_condition is None:
             cond = sample_conditions(self._rng, (k, self.max_agents))
+            if self.eval_task_share > 0.0:
+                pick = self._rng.random((k, self.max_agents)) < self.eval_task_share
+                cond[..., _TASK_INDEX] = np.where(pick[..., None], criterion_task_fields(), cond[..., _TASK_INDEX])
         else:
             cond = np.broadcast_to(self.fixed_condition, (k, self.max_agents, NUM_CONDITION_FIELDS)).copy()
         self.sim.reset(worlds=worlds, scenario_index=scenario_index, conditions=cond)

@@ -54,6 +54,36 @@ def test_expert_replay_completes_with_high_score(expert):
     assert np.array_equal(cls == M.OutcomeClass.COMPLETED, c["goal"] & ~c["at_fault_collision"] & ~c["offroad"])
 
 
+def test_teacher_ego_drives_like_its_teacher(expert):
+    """``reactive`` / ``tracking`` as the ego: the imitation teacher drives slot 0 under the
+    deployment condition (a reference row for a student policy)."""
+    ev, res_replay = expert
+    res = ev.run("tracking")
+    assert res.label == "tracking-teacher" and res.checkpoint == "teacher:tracking"
+    c = res.columns
+    rep = c["regime"] == "replay"
+    # the tracking teacher follows the ego's log: under replay traffic it stays on the road
+    # and completes (nearly) what the replayed log completes
+    assert not c["offroad"][rep].any()
+    assert c["goal"][rep].sum() >= max(1, res_replay.columns["goal"][rep].sum() - 1)
+    reactive = ev.run("reactive", label="teacher")
+    assert reactive.label == "teacher"
+    assert not np.array_equal(reactive.columns["steps_alive"], np.zeros_like(reactive.columns["steps_alive"]))
+    # act() is the teacher's slot-0 action on the bound simulator
+    ego = R.TeacherEgo("reactive")
+    with pytest.raises(RuntimeError, match="bind"):
+        ego.act(np.zeros((1, 4), np.float32), np.ones(1, bool))
+    ev.sim.reset(scenario_index=np.zeros(ev.num_worlds, np.int64))
+    ego.bind(ev.sim)
+    from cpsim.arrays import to_numpy
+    from cpsim.expert import ReactiveExpert
+
+    np.testing.assert_array_equal(ego.act(np.zeros((ev.num_worlds, 4), np.float32), np.ones(ev.num_worlds, bool)),
+                                  to_numpy(ReactiveExpert(ev.sim).actions())[:, 0])
+    with pytest.raises(ValueError, match="teacher"):
+        R.TeacherEgo("oracle")
+
+
 class Weave:
     """Open-loop ego: constant speed, lateral jerk switching every few steps (drifts off the
     lane centre and out of alignment, so the lane metrics are not trivially 1)."""

@@ -146,6 +146,31 @@ def test_timeout_terminal_ends_timeouts_without_truncation(scenarios):
         SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, timeout_terminal="yes")
 
 
+def test_eval_task_share_sets_task_fields_only(scenarios):
+    """eval_task_share: that share of agents gets the evaluation criterion's task fields
+    (2 m, 30 m/s), the rest keep p_train draws; style fields stay p_train draws for all."""
+    from cpsim.conditions import STYLE_MASK, TRAIN_HIGH, TRAIN_LOW, criterion_task_fields
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    task = ~STYLE_MASK
+    for share, lo, hi in ((0.0, 0.0, 0.02), (0.5, 0.3, 0.7), (1.0, 1.0, 1.0)):
+        e = SelfPlayVecEnv(scenarios, num_worlds=16, max_agents=A, seed=5, episode_steps=STEPS,
+                           eval_task_share=share)
+        e.reset()
+        cond = np.asarray(e.sim.conditions.numpy() if hasattr(e.sim.conditions, "numpy") else e.sim.conditions)
+        e.close()
+        at_eval = np.all(np.isclose(cond[..., task], criterion_task_fields()), axis=-1)
+        assert lo <= at_eval.mean() <= hi, (share, at_eval.mean())
+        style = cond[..., STYLE_MASK]
+        assert np.all(style >= TRAIN_LOW[STYLE_MASK] - 1e-6) and np.all(style <= TRAIN_HIGH[STYLE_MASK] + 1e-6)
+        assert style.std(axis=(0, 1)).min() > 0  # still drawn, not fixed
+    for bad in (-0.1, 1.5, "half"):
+        with pytest.raises(ValueError, match="eval_task_share"):
+            SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, eval_task_share=bad)
+    with pytest.raises(ValueError, match="eval_task_share"):
+        SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, condition="normal", eval_task_share=0.5)
+
+
 def test_seed_makes_resets_reproducible(env):
     env.seed(11)
     a = env.reset()
