@@ -243,10 +243,6 @@ class TeacherEgo(EgoPolicy):
         return _np(self._expert.actions())[:, 0].astype(np.int64)
 
 
-#: Ego "policies" that are imitation teachers (``cpsim.expert``), by name.
-EGO_TEACHERS: dict[str, str] = {"reactive": "reactive", "tracking": "tracking"}
-
-
 class ModelEgo(EgoPolicy):
     """An SB3 model (PPO, RecurrentPPO, CounterPlay) or anything with SB3's ``predict``.
 
@@ -342,8 +338,10 @@ def as_ego_policy(policy: Any, label: str | None = None) -> EgoPolicy:
         return policy
     if isinstance(policy, (str, os.PathLike)):
         s = str(policy)
-        if s.lower() in EGO_TEACHERS:
-            ego = TeacherEgo(EGO_TEACHERS[s.lower()])
+        from cpsim.expert import EXPERTS
+
+        if s.lower() in EXPERTS:
+            ego = TeacherEgo(s)
             if label:
                 ego.label = label
             return ego

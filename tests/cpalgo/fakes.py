@@ -79,3 +79,16 @@ class SlotVecEnv(VecEnv):
 
     def env_is_wrapped(self, wrapper_class, indices=None):
         return [False] * self.num_envs
+
+
+def minibatch_logits(model):
+    """Yield ``(data, mask, logits)`` for every minibatch of a collected recurrent rollout:
+    the policy's action logits on the stored actions, under ``torch.no_grad``."""
+    import torch as th
+
+    with th.no_grad():
+        for data in model.rollout_buffer.get(model.batch_size):
+            mask = data.mask > 1e-8
+            model.policy.evaluate_actions(data.observations, data.actions.long().flatten(), data.lstm_states,
+                                          data.episode_starts)
+            yield data, mask, model.policy.action_dist.distribution.logits

@@ -10,6 +10,7 @@ pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
 from cpalgo.bc import BCPolicy  # noqa: E402
 from cpalgo.methods.base import frozen_policy_copy  # noqa: E402
+from tests.cpalgo.fakes import minibatch_logits  # noqa: E402
 from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
 
 pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
@@ -17,16 +18,8 @@ pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
 def minibatch_kls(model) -> list[float]:
     """Raw KL(reference || policy) of every minibatch of the collected rollout."""
-    out = []
-    with th.no_grad():
-        for data in model.rollout_buffer.get(model.batch_size):
-            mask = data.mask > 1e-8
-            model.policy.evaluate_actions(data.observations, data.actions.long().flatten(), data.lstm_states,
-                                          data.episode_starts)
-            logits = model.policy.action_dist.distribution.logits
-            term = model._minibatch_terms(data, mask, logits)["spiced_kl_loss"]
-            out.append(float(term) / model.kl_coef)
-    return out
+    return [float(model._minibatch_terms(data, mask, logits)["spiced_kl_loss"]) / model.kl_coef
+            for data, mask, logits in minibatch_logits(model)]
 
 
 def test_kl_is_zero_when_the_policy_is_the_reference(anchor):

@@ -11,6 +11,7 @@ pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 from cpalgo.teacher_ppo import TeacherPPO, export_recurrent_ppo  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 from cpsim.expert import make_expert  # noqa: E402
+from tests.cpalgo.fakes import minibatch_logits  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
@@ -64,17 +65,12 @@ def test_the_term_is_the_masked_nll_of_the_teachers_action_and_pulls_toward_it()
 
     def nll() -> float:
         vals = []
-        with th.no_grad():
-            for data in model.rollout_buffer.get(model.batch_size):
-                mask = data.mask > 1e-8
-                model.policy.evaluate_actions(data.observations, data.actions.long().flatten(), data.lstm_states,
-                                              data.episode_starts)
-                logits = model.policy.action_dist.distribution.logits
-                term = model._minibatch_terms(data, mask, logits)["teacher_nll_loss"] / model.current_teacher_coef()
-                target = model.rollout_buffer.sample_extras["teacher_action"].reshape(-1).long()
-                ref = -th.log_softmax(logits, -1)[mask].gather(-1, target[mask][:, None]).mean()
-                assert abs(float(term) - float(ref)) < 1e-5
-                vals.append(float(term))
+        for data, mask, logits in minibatch_logits(model):
+            term = model._minibatch_terms(data, mask, logits)["teacher_nll_loss"] / model.current_teacher_coef()
+            target = model.rollout_buffer.sample_extras["teacher_action"].reshape(-1).long()
+            ref = -th.log_softmax(logits, -1)[mask].gather(-1, target[mask][:, None]).mean()
+            assert abs(float(term) - float(ref)) < 1e-5
+            vals.append(float(term))
         return float(np.mean(vals))
 
     before = nll()
