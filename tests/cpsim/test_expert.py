@@ -107,8 +107,51 @@ def test_reactive_expert_speed_follows_the_style():
     bold = float(_targets(ReactiveExpert, me, "aggressive")[0])
     normal = float(_targets(ReactiveExpert, me, "normal")[0])
     timid = float(_targets(ReactiveExpert, me, "cautious")[0])
-    assert bold > 1.0 > normal > timid
+    assert bold >= normal > 1.0 > timid  # both bold styles hit the jerk model's 2.5 m/s^2 cap
+    import torch
+
+    factors = ReactiveStyle().at("schedule", boldness(torch.as_tensor(np.stack(
+        [cpsim.profile(name) for name in ("cautious", "normal", "aggressive")]))))
+    assert factors[0] < 1.0 < 1.15 < factors[1] < factors[2]  # the log replayed 0.95x, 1.2x, 1.35x
     assert timid < 0.0  # replays its log slower than logged
+
+
+def _curve_ahead(radius: float = 10.0, straight: float = 12.0, speed: float = 10.0):
+    """One agent logged at ``speed`` along a straight of ``straight`` m, then a left turn of
+    ``radius`` m (the log keeps its speed; only the curve speed limit should brake)."""
+    from dataclasses import replace
+
+    sc = make_scenario([agent(0.0, 0.0, speed=speed, goal=(85.0, 0.0))])
+    s = speed * 0.1 * np.arange(sc.log_xy.shape[1])
+    phi = np.clip(s - straight, 0.0, None) / radius
+    x = np.where(s < straight, s, straight + radius * np.sin(phi))
+    y = np.where(s < straight, 0.0, radius * (1.0 - np.cos(phi)))
+    xy = np.stack([x, y], -1)[None].astype(np.float32)
+    heading = np.where(s < straight, 0.0, phi)[None].astype(np.float32)
+    vel = (speed * np.stack([np.cos(heading), np.sin(heading)], -1)).astype(np.float32)
+    return replace(sc, log_xy=xy, log_heading=heading, log_velocity=vel, goal_xy=xy[:, -1].copy())
+
+
+def test_reactive_expert_brakes_for_a_curve_ahead_only_with_a_curve_limit():
+    def a_long(style, radius):
+        sim = cpsim.Simulator([_curve_ahead(radius)], num_worlds=1, max_agents=2, seed=0)
+        sim.reset(conditions=cpsim.profile("normal"))
+        return float(ReactiveExpert(sim, style=style).targets()[0][0, 0])
+
+    limited = ReactiveStyle(schedule=(1.0, 1.0), curve_lat_accel=(3.0, 3.0))
+    free = ReactiveStyle(schedule=(1.0, 1.0), curve_lat_accel=None)
+    # 10 m/s into a 10 m radius: sqrt(3 * 10) = 5.5 m/s allowed, 12 m ahead -> about -2.9 m/s^2
+    assert abs(a_long(free, 10.0)) < 0.5
+    assert a_long(limited, 10.0) < -2.0
+    # a gentle 80 m radius allows 15.5 m/s: no braking
+    assert abs(a_long(limited, 80.0) - a_long(free, 80.0)) < 1e-4
+    # bolder styles accept more lateral acceleration, so they brake less
+    bold = ReactiveStyle(schedule=(1.0, 1.0), curve_lat_accel=(2.0, 4.0), exponent=1.0)
+    sim = cpsim.Simulator([_curve_ahead(10.0)] * 2, num_worlds=2, max_agents=2, seed=0)
+    per_world = np.stack([cpsim.profile("cautious"), cpsim.profile("aggressive")])[:, None, :]
+    sim.reset(conditions=np.repeat(per_world, 2, axis=1))
+    cautious, aggressive = ReactiveExpert(sim, style=bold).targets()[0][:, 0].tolist()
+    assert cautious < aggressive < 0.0
 
 
 def test_boldness_orders_the_panel():
@@ -137,5 +180,9 @@ def test_expert_names_and_style_are_validated():
         make_expert("idm", None)
     with pytest.raises(ValueError, match="schedule"):
         ReactiveStyle(schedule=(0.0, 1.0))
+    with pytest.raises(ValueError, match="curve_lat_accel"):
+        ReactiveStyle(curve_lat_accel=(0.0, 3.0))
+    with pytest.raises(ValueError, match="exponent"):
+        ReactiveStyle(exponent=0.0)
     with pytest.raises(ValueError, match="lookahead"):
         ReactiveStyle(lookahead=0.0)
