@@ -33,6 +33,9 @@ from typing import Any, Sequence
 
 from cpalgo.recipes import Recipe, import_string, load_recipe, resolve_path
 
+#: Teacher names of ``--teacher`` (cpsim.expert.EXPERTS; kept here so the parser imports no Warp).
+TEACHERS: tuple[str, ...] = ("tracking", "reactive", "reactive-v1")
+
 #: Defaults, spelled as the README spells them (they resolve to the shipped files).
 DEFAULT_ANCHOR = "zoo/anchor.zip"
 DEFAULT_ANCHOR_CONFIG = "zoo/anchor.yml"
@@ -577,9 +580,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="start from this anchor checkpoint's weights")
     ta.add_argument("--imitate", type=_non_negative_int, default=0, metavar="ROUNDS",
                     help="DAgger rounds imitating the --teacher before PPO (0: none)")
-    ta.add_argument("--teacher", default="tracking", choices=["tracking", "reactive"],
-                    help="imitation teacher: tracking (cpsim.expert.TrackingExpert, follows its log) or "
-                         "reactive (cpsim.expert.ReactiveExpert, keeps gaps, yields, speed by condition)")
+    ta.add_argument("--teacher", default="tracking", choices=TEACHERS,
+                    help="imitation teacher: tracking (cpsim.expert.TrackingExpert, follows its log), "
+                         "reactive (cpsim.expert.ReactiveExpert, keeps gaps, yields, slows for curves, speed by "
+                         "condition) or reactive-v1 (its first style, cpsim.expert.REACTIVE_STYLE_V1)")
     ta.add_argument("--add-womd", type=_existing_dir, default=None, metavar="DIR",
                     help="add the WOMD scenes of this folder to the recipe's procedural training pool")
     ta.add_argument("--imitate-worlds", type=_positive_int, default=128, metavar="W", help="worlds per DAgger round")
@@ -606,7 +610,7 @@ def build_parser() -> argparse.ArgumentParser:
              "Prints them and writes them as JSON.")
     oc.add_argument("--model", default=DEFAULT_ANCHOR, metavar="ZIP",
                     help="checkpoint (SB3 .zip, CounterPlay, BC .pt), or 'expert' for the --teacher")
-    oc.add_argument("--teacher", default="tracking", choices=["tracking", "reactive"],
+    oc.add_argument("--teacher", default="tracking", choices=TEACHERS,
                     help="the expert of --model expert: tracking (cpsim.expert.TrackingExpert) or "
                          "reactive (cpsim.expert.ReactiveExpert)")
     oc.add_argument("--dynamics", default="jerk", choices=["jerk", "classic"],

@@ -434,16 +434,25 @@ class ReactiveExpert(TrackingExpert):
         return need.amin(-1)
 
 
+#: The first reactive teacher's style (linear boldness mapping, no curve speed limit), which
+#: the first three imitation stages of the shipped anchor used; ``reactive-v1`` in
+#: :func:`make_expert`.
+REACTIVE_STYLE_V1 = ReactiveStyle(schedule=(0.95, 1.25), curve_lat_accel=None, exponent=1.0)
+
+
 def make_expert(name: str, sim, **kwargs):
-    """The imitation teacher by name: ``"tracking"`` (:class:`TrackingExpert`) or
-    ``"reactive"`` (:class:`ReactiveExpert`)."""
+    """The imitation teacher by name: ``"tracking"`` (:class:`TrackingExpert`),
+    ``"reactive"`` (:class:`ReactiveExpert` with the default :class:`ReactiveStyle`) or
+    ``"reactive-v1"`` (the same with :data:`REACTIVE_STYLE_V1`)."""
     if name not in EXPERTS:
         raise ValueError(f"teacher: unknown expert {name!r}; accepted: {list(EXPERTS)}")
-    return {"tracking": TrackingExpert, "reactive": ReactiveExpert}[name](sim, **kwargs)
+    if name == "reactive-v1":
+        kwargs.setdefault("style", REACTIVE_STYLE_V1)
+    return {"tracking": TrackingExpert, "reactive": ReactiveExpert, "reactive-v1": ReactiveExpert}[name](sim, **kwargs)
 
 
 #: Names accepted by :func:`make_expert`.
-EXPERTS: tuple[str, ...] = ("tracking", "reactive")
+EXPERTS: tuple[str, ...] = ("tracking", "reactive", "reactive-v1")
 
 
 def _jerk_next(a: torch.Tensor, delta: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
@@ -452,4 +461,5 @@ def _jerk_next(a: torch.Tensor, delta: torch.Tensor, bounds: tuple[float, float]
     return torch.where(a * new < 0.0, torch.zeros_like(new), new.clamp(*bounds))
 
 
-__all__ = ["TrackingExpert", "TrackingGains", "ReactiveExpert", "ReactiveStyle", "boldness", "make_expert", "EXPERTS"]
+__all__ = ["TrackingExpert", "TrackingGains", "ReactiveExpert", "ReactiveStyle", "REACTIVE_STYLE_V1", "boldness",
+           "make_expert", "EXPERTS"]

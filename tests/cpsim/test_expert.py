@@ -175,6 +175,19 @@ def test_reactive_styles_separate_on_held_out_tasks():
     assert goals("aggressive") > goals("cautious") + 0.2
 
 
+def test_reactive_v1_is_the_first_style_and_the_cli_knows_every_teacher():
+    from cpalgo.cli import TEACHERS
+    from cpsim.expert import EXPERTS, REACTIVE_STYLE_V1
+
+    assert TEACHERS == EXPERTS
+    sim = cpsim.Simulator([_curve_ahead(10.0)], num_worlds=1, max_agents=2, seed=0)
+    sim.reset(conditions=cpsim.profile("normal"))
+    v1, v2 = make_expert("reactive-v1", sim), make_expert("reactive", sim)
+    assert v1.style == REACTIVE_STYLE_V1 and v2.style == ReactiveStyle()
+    # the curve ahead: only the current teacher brakes for it
+    assert float(v1.targets()[0][0, 0]) > -0.5 > float(v2.targets()[0][0, 0])
+
+
 def test_expert_names_and_style_are_validated():
     with pytest.raises(ValueError, match="unknown expert 'idm'"):
         make_expert("idm", None)
