@@ -271,7 +271,7 @@ class ReactiveStyle:
     lookahead: float = 15.0
     max_accel: float = 2.0
     comfort_brake: float = 3.0
-    curve_lat_accel: tuple[float, float] | None = (3.0, 4.0)
+    curve_lat_accel: tuple[float, float] | None = (2.5, 3.0)
     exponent: float = 0.35
 
     def __post_init__(self) -> None:
