@@ -611,8 +611,8 @@ def build_parser() -> argparse.ArgumentParser:
     oc.add_argument("--model", default=DEFAULT_ANCHOR, metavar="ZIP",
                     help="checkpoint (SB3 .zip, CounterPlay, BC .pt), or 'expert' for the --teacher")
     oc.add_argument("--teacher", default="tracking", choices=TEACHERS,
-                    help="the expert of --model expert: tracking (cpsim.expert.TrackingExpert) or "
-                         "reactive (cpsim.expert.ReactiveExpert)")
+                    help="the expert of --model expert: tracking (cpsim.expert.TrackingExpert), "
+                         "reactive (cpsim.expert.ReactiveExpert) or reactive-v1 (its first style)")
     oc.add_argument("--dynamics", default="jerk", choices=["jerk", "classic"],
                     help="dynamics of the simulator for --model expert")
     oc.add_argument("--tasks", type=_positive_int, default=256, metavar="N", help="held-out tasks")
