@@ -34,7 +34,7 @@ from typing import Any, Sequence
 from cpalgo.recipes import Recipe, import_string, load_recipe, resolve_path
 
 #: Teacher names of ``--teacher`` (cpsim.expert.EXPERTS; kept here so the parser imports no Warp).
-TEACHERS: tuple[str, ...] = ("tracking", "reactive", "reactive-v1")
+TEACHERS: tuple[str, ...] = ("tracking", "reactive", "reactive-v2", "reactive-v1")
 
 #: Defaults, spelled as the README spells them (they resolve to the shipped files).
 DEFAULT_ANCHOR = "zoo/anchor.zip"
@@ -582,8 +582,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="DAgger rounds imitating the --teacher before PPO (0: none)")
     ta.add_argument("--teacher", default="tracking", choices=TEACHERS,
                     help="imitation teacher: tracking (cpsim.expert.TrackingExpert, follows its log), "
-                         "reactive (cpsim.expert.ReactiveExpert, keeps gaps, yields, slows for curves, speed by "
-                         "condition) or reactive-v1 (its first style, cpsim.expert.REACTIVE_STYLE_V1)")
+                         "reactive (cpsim.expert.ReactiveExpert, keeps gaps, yields, slows for curves and for its goal "
+                         "speed, speed by condition), reactive-v2 (its second style, no goal speed limit, "
+                         "cpsim.expert.REACTIVE_STYLE_V2) or reactive-v1 (its first style, "
+                         "cpsim.expert.REACTIVE_STYLE_V1)")
     ta.add_argument("--add-womd", type=_existing_dir, default=None, metavar="DIR",
                     help="add the WOMD scenes of this folder to the recipe's procedural training pool")
     ta.add_argument("--imitate-worlds", type=_positive_int, default=128, metavar="W", help="worlds per DAgger round")
@@ -612,7 +614,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="checkpoint (SB3 .zip, CounterPlay, BC .pt), or 'expert' for the --teacher")
     oc.add_argument("--teacher", default="tracking", choices=TEACHERS,
                     help="the expert of --model expert: tracking (cpsim.expert.TrackingExpert), "
-                         "reactive (cpsim.expert.ReactiveExpert) or reactive-v1 (its first style)")
+                         "reactive (cpsim.expert.ReactiveExpert), reactive-v2 or reactive-v1 (its earlier styles)")
     oc.add_argument("--dynamics", default="jerk", choices=["jerk", "classic"],
                     help="dynamics of the simulator for --model expert")
     oc.add_argument("--tasks", type=_positive_int, default=256, metavar="N", help="held-out tasks")

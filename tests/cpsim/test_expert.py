@@ -154,6 +154,52 @@ def test_reactive_expert_brakes_for_a_curve_ahead_only_with_a_curve_limit():
     assert cautious < aggressive < 0.0
 
 
+def _with_task(name: str, goal_speed: float, goal_radius: float = 2.0) -> np.ndarray:
+    from cpsim.conditions import FIELD_INDEX
+
+    c = cpsim.profile(name)
+    c[FIELD_INDEX["goal_speed"]], c[FIELD_INDEX["goal_radius"]] = goal_speed, goal_radius
+    return c
+
+
+def test_reactive_expert_brakes_for_its_goal_speed_and_then_completes_the_task():
+    from dataclasses import replace
+
+    from cpsim.expert import REACTIVE_STYLE_V2
+
+    def scene(goal_x: float):
+        sc = _curve_ahead(radius=1e6)  # a straight log at 10 m/s
+        return replace(sc, goal_xy=np.array([[goal_x, 0.0]], np.float32))
+
+    def a_long(style, goal_x, goal_speed):
+        sim = cpsim.Simulator([scene(goal_x)], num_worlds=1, max_agents=2, seed=0)
+        sim.reset(conditions=_with_task("normal", goal_speed))
+        return float(ReactiveExpert(sim, style=style).targets()[0][0, 0])
+
+    free = ReactiveStyle(schedule=(1.0, 1.0), goal_brake=None)
+    limited = ReactiveStyle(schedule=(1.0, 1.0), goal_brake=1.5)
+    # 10 m/s, goal 15 m ahead, goal speed 3: reach 2.4 m/s within 14 m -> (2.4^2 - 100) / 28 = -3.4
+    assert abs(a_long(free, 15.0, 3.0)) < 0.5
+    assert a_long(limited, 15.0, 3.0) == pytest.approx(-3.37, abs=0.1)
+    # 60 m ahead needs only -0.8 m/s^2 (< goal_brake): not yet; and no limit at goal speed 30
+    assert a_long(limited, 60.0, 3.0) == pytest.approx(a_long(free, 60.0, 3.0), abs=1e-4)
+    assert a_long(limited, 15.0, 30.0) == pytest.approx(a_long(free, 15.0, 30.0), abs=1e-4)
+
+    # closed loop under the training goal test (each agent's own radius and speed): the
+    # second style drives through a 4 m/s goal 40 m ahead, the current one stops in it
+    def outcome(teacher):
+        sim = cpsim.Simulator([scene(40.0)], num_worlds=1, max_agents=2, seed=0)
+        sim.reset(conditions=_with_task("normal", 4.0))
+        expert = make_expert(teacher, sim)
+        for _ in range(sim.config.episode_steps):
+            sim.step(expert.actions())
+        return int(sim.outcome.numpy()[0, 0])
+
+    assert REACTIVE_STYLE_V2.goal_brake is None and ReactiveStyle().goal_brake is not None
+    assert outcome("reactive-v2") != int(Outcome.GOAL)
+    assert outcome("reactive") == int(Outcome.GOAL)
+
+
 def test_boldness_orders_the_panel():
     import torch
 
@@ -198,5 +244,7 @@ def test_expert_names_and_style_are_validated():
         ReactiveStyle(curve_lat_accel=(0.0, 3.0))
     with pytest.raises(ValueError, match="exponent"):
         ReactiveStyle(exponent=0.0)
+    with pytest.raises(ValueError, match="goal_brake"):
+        ReactiveStyle(goal_brake=-1.0)
     with pytest.raises(ValueError, match="lookahead"):
         ReactiveStyle(lookahead=0.0)
