@@ -3,6 +3,7 @@ radius and speed): outcome rates, and how many timeouts came within their goal r
 
     python docs/results/anchor_failures/goal_speed.py reactive      # teacher version 3
     python docs/results/anchor_failures/goal_speed.py reactive-v2   # without the goal speed limit
+    python docs/results/anchor_failures/goal_speed.py zoo/anchor.zip  # a checkpoint (argmax actions)
 
 192 procedural training tasks (cpsim.scenario.procedural.train_pool(192, seed=0)), 8 slots,
 conditions from p_train (seed 0). About 40 s on one core.
@@ -29,11 +30,25 @@ def main(teacher: str = "reactive", n: int = 192) -> None:
     cond = sample_conditions(np.random.default_rng(0), (W, A))
     sim.reset(scenario_index=np.arange(W), conditions=cond)
     policy = ((sim.controllers == int(Controller.POLICY)) & sim.alive).cpu().numpy()
-    expert = make_expert(teacher, sim)
+    if teacher.endswith(".zip"):
+        from cpalgo.evaluate.runner import load_model
+
+        model, state = load_model(teacher, "teacher"), None
+        starts = np.ones(W * A, bool)
+
+        def actions() -> torch.Tensor:
+            nonlocal state
+            obs = sim.obs.reshape(W * A, -1).cpu().numpy().copy()
+            obs[~sim.policy_mask.reshape(-1).cpu().numpy()] = 0.0
+            act, state = model.predict(obs, state=state, episode_start=starts, deterministic=True)
+            starts[:] = False
+            return torch.as_tensor(np.asarray(act).reshape(W, A), dtype=torch.int32)
+    else:
+        actions = make_expert(teacher, sim).actions
     radius, goal_speed = cond[..., FIELD_INDEX["goal_radius"]], cond[..., FIELD_INDEX["goal_speed"]]
     inside_fast = np.zeros((W, A), bool)
     for _ in range(sim.config.episode_steps):
-        sim.step(expert.actions())
+        sim.step(actions())
         dist = np.linalg.norm(sim.xy.cpu().numpy() - sim.goal.cpu().numpy(), axis=-1)
         inside_fast |= (dist <= radius) & (sim.speed.cpu().numpy() > goal_speed) & sim.alive.cpu().numpy()
         if bool(sim.world_done.all()):
