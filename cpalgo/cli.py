@@ -270,7 +270,8 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
                                                                  num_worlds=args.imitate_worlds,
                                                                  epochs=args.imitate_epochs,
                                                                  beta=args.imitate_beta,
-                                                                 teacher=args.teacher),
+                                                                 teacher=args.teacher,
+                                                                 style_pairs=args.imitate_style_pairs),
                                    seed=args.seed)
         if args.imitate_only:
             steps = 0
@@ -594,6 +595,10 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--imitate-beta", type=_unit_float, default=1.0, metavar="P",
                     help="probability that the expert drives in the first DAgger round (lower it when "
                          "continuing an imitation run with --init)")
+    ta.add_argument("--imitate-style-pairs", type=_non_negative_int, default=0, metavar="K",
+                    help="label every DAgger episode K more times with every agent's style swapped for a random "
+                         "panel profile's (the teacher's actions under it at the same states), so the student "
+                         "learns how the style changes the action (cpalgo.pretrain.ImitationConfig.style_pairs)")
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
     ta.add_argument("--teacher-coef", type=_non_negative_float, default=0.0, metavar="C",
                     help="PPO with the --teacher's actions as an auxiliary imitation term of weight C "

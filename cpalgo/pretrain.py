@@ -58,6 +58,14 @@ class ImitationConfig:
             ignores other vehicles, one behaviour for every condition) or ``"reactive"``
             (:class:`cpsim.expert.ReactiveExpert`, keeps gaps, yields at crossings, and drives
             faster or slower with each agent's condition).
+        style_pairs: extra labelled copies of every episode, each with every agent's style
+            fields swapped for those of a random profile of the CounterPlay panel (task fields
+            kept): the same visited states, the swapped condition in the observation, and the
+            teacher's action under it. The student then sees states that differ only in the
+            style, which is what a search from a root varies; without them it sees each
+            state under one condition and learns a style effect several times weaker than
+            the teacher's (``docs/results/anchor_failures/style_spread.py``). The critic is
+            fitted on the original copy only (the swapped return is not observed).
     """
 
     iterations: int = 6
@@ -73,6 +81,7 @@ class ImitationConfig:
     gamma: float = 0.99
     max_grad_norm: float = 0.5
     teacher: str = "tracking"
+    style_pairs: int = 0
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -81,6 +90,8 @@ class ImitationConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"ImitationConfig.{name}: must be an integer >= 1, got {value!r}")
+        if not isinstance(self.style_pairs, (int, np.integer)) or self.style_pairs < 0:
+            raise ValueError(f"ImitationConfig.style_pairs: must be an integer >= 0, got {self.style_pairs!r}")
         for name in ("beta", "decay", "gamma"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
@@ -110,6 +121,8 @@ class EpisodeBatch:
         mask: (T, N) bool, the slot held a live POLICY agent at that step.
         returns: (T, N) float32 discounted conditioned return from that step on.
         agreement: share of masked steps where the policy's argmax equals the label.
+        value_mask: (T, N) bool, the steps the critic is fitted on (``None``: ``mask``);
+            style-swapped copies (``style_pairs``) have none.
     """
 
     obs: th.Tensor
@@ -117,6 +130,7 @@ class EpisodeBatch:
     mask: th.Tensor
     returns: th.Tensor
     agreement: float
+    value_mask: th.Tensor | None = None
 
 
 def _policy_obs(sim) -> th.Tensor:
@@ -126,25 +140,32 @@ def _policy_obs(sim) -> th.Tensor:
 
 @th.no_grad()
 def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
-                     gamma: float = 0.99, condition: np.ndarray | None = None) -> EpisodeBatch:
+                     gamma: float = 0.99, condition: np.ndarray | None = None,
+                     style_pairs: int = 0) -> EpisodeBatch:
     """Run one episode in every world of ``sim`` and label it with the expert.
 
     Every POLICY agent follows the expert with probability ``beta`` per episode (a
     per-agent coin, so rounds mix expert and policy agents in the same worlds) and its
     own sampled action otherwise. Conditions are drawn from p_train per agent, or are the
-    fixed raw ``condition`` (10,) for every agent when one is given.
+    fixed raw ``condition`` (10,) for every agent when one is given. With ``style_pairs``
+    K > 0 the batch holds N (K + 1) slots: the episodes as driven, then K copies whose
+    observations carry a style-swapped condition (:class:`ImitationConfig`) and whose
+    labels are the expert's actions under it at the same states.
     """
     W, A = sim.num_worlds, sim.max_agents
     N = W * A
     pool = rng.integers(0, sim.num_scenarios, size=W)
     conds = sample_conditions(rng, (W, A)) if condition is None else np.broadcast_to(condition, (W, A, len(condition)))
     sim.reset(scenario_index=pool, conditions=conds)
+    swapped = [_swap_styles(conds, rng) for _ in range(style_pairs)]
+    live_conditions = sim.conditions  # (W, A, 10) view the expert reads
+    original = live_conditions.clone()
     T = sim.config.episode_steps
     device = policy.device
     states = zero_states(policy, N, device)
     by_expert = th.as_tensor(rng.random(N) < beta)
-    obs_buf = th.zeros((T, N, sim.obs_layout.size), dtype=th.float32)
-    labels = th.zeros((T, N), dtype=th.int64)
+    obs_buf = th.zeros((T, N * (1 + style_pairs), sim.obs_layout.size), dtype=th.float32)
+    labels = th.zeros((T, N * (1 + style_pairs)), dtype=th.int64)
     mask = th.zeros((T, N), dtype=th.bool)
     rewards = th.zeros((T, N), dtype=th.float32)
     agree = 0
@@ -158,9 +179,16 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
         sampled = th.distributions.Categorical(logits=logits).sample().cpu()
         agree += int(((logits.argmax(-1).cpu() == label) & live).sum())
         action = th.where(by_expert, label, sampled)
-        obs_buf[t] = obs
-        labels[t] = label
+        obs_buf[t, :N] = obs
+        labels[t, :N] = label
         mask[t] = live
+        for k, cond_k in enumerate(swapped, start=1):
+            live_conditions.copy_(cond_k)
+            labels[t, k * N:(k + 1) * N] = expert.actions().reshape(-1).long()
+            obs_buf[t, k * N:(k + 1) * N] = sim.obs_layout.replace_condition(obs, cond_k.reshape(N, -1)) \
+                * live.reshape(-1, 1)
+        if swapped:
+            live_conditions.copy_(original)
         sim.step(action.reshape(W, A).to(th.int32))
         rewards[t] = sim.reward.reshape(-1) * live
         if bool(sim.world_done.all()):
@@ -172,7 +200,22 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
         running = rewards[t] + gamma * running * mask[t]
         returns[t] = running
     n = max(int(mask.sum()), 1)
-    return EpisodeBatch(obs_buf, labels, mask, returns, agree / n)
+    if not swapped:
+        return EpisodeBatch(obs_buf, labels, mask, returns, agree / n)
+    copies = 1 + style_pairs
+    return EpisodeBatch(obs_buf, labels, mask.repeat(1, copies), returns.repeat(1, copies), agree / n,
+                        value_mask=th.cat([mask, th.zeros_like(mask).repeat(1, style_pairs)], 1))
+
+
+def _swap_styles(conditions: np.ndarray, rng: np.random.Generator) -> th.Tensor:
+    """Raw conditions (W, A, 10) whose style fields are those of a random panel profile per
+    agent (task fields kept), as a float32 tensor."""
+    from cpsim.conditions import PANEL, STYLE_MASK, profile
+
+    styles = np.stack([profile(name) for name in PANEL])[rng.integers(0, len(PANEL), size=conditions.shape[:-1])]
+    out = np.array(conditions, dtype=np.float32, copy=True)
+    out[..., STYLE_MASK] = styles[..., STYLE_MASK]
+    return th.as_tensor(out)
 
 
 def _sequence_forward(policy, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
@@ -188,18 +231,20 @@ def _sequence_forward(policy, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
 
 
 def imitation_losses(policy, obs: th.Tensor, labels: th.Tensor, mask: th.Tensor,
-                     returns: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+                     returns: th.Tensor, value_mask: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
     """Masked cross-entropy of the actor and mean squared error of the critic.
 
     Args:
         obs: (T, B, D); labels, mask, returns: (T, B).
+        value_mask: (T, B) bool, the steps of the critic's loss (default: ``mask``).
     """
     logits, values = _sequence_forward(policy, obs)
     m = mask.float()
     n = m.sum().clamp(min=1.0)
     ce = (F.cross_entropy(logits.reshape(-1, logits.shape[-1]), labels.reshape(-1), reduction="none")
           * m.reshape(-1)).sum() / n
-    mse = (((values - returns) ** 2) * m).sum() / n
+    vm = m if value_mask is None else value_mask.float()
+    mse = (((values - returns) ** 2) * vm).sum() / vm.sum().clamp(min=1.0)
     return ce, mse
 
 
@@ -257,7 +302,8 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         t0 = time.perf_counter()
         beta = cfg.beta * cfg.decay ** it
         policy.set_training_mode(False)
-        new = [collect_episodes(policy, sim, expert, beta, rng, cfg.gamma, fixed) for _ in range(cfg.episodes)]
+        new = [collect_episodes(policy, sim, expert, beta, rng, cfg.gamma, fixed, cfg.style_pairs)
+               for _ in range(cfg.episodes)]
         data.extend(new)
         data = data[-cfg.keep_rounds * cfg.episodes:]
         agreement = float(np.mean([b.agreement for b in new]))
@@ -270,10 +316,11 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
                 order = keep[th.randperm(keep.numel(), generator=gen)]
                 for lo in range(0, order.numel(), cfg.batch_sequences):
                     idx = order[lo:lo + cfg.batch_sequences]
+                    vmask = None if batch.value_mask is None else batch.value_mask[:, idx].to(policy.device)
                     ce, mse = imitation_losses(policy, batch.obs[:, idx].to(policy.device),
                                                batch.labels[:, idx].to(policy.device),
                                                batch.mask[:, idx].to(policy.device),
-                                               batch.returns[:, idx].to(policy.device))
+                                               batch.returns[:, idx].to(policy.device), vmask)
                     loss = ce + cfg.value_coef * mse
                     optimizer.zero_grad()
                     loss.backward()
@@ -285,7 +332,7 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         policy.set_training_mode(False)
         row = {"round": it, "beta": beta, "agreement": agreement, "cross_entropy": ce_sum / max(steps, 1),
                "value_mse": mse_sum / max(steps, 1),
-               "transitions": int(sum(int(b.mask.sum()) for b in new)),
+               "transitions": int(sum(int(b.mask.sum()) for b in new)) // (1 + cfg.style_pairs),
                "seconds": time.perf_counter() - t0}
         history.append(row)
         if log is not None:

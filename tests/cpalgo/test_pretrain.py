@@ -104,6 +104,45 @@ def test_imitate_the_reactive_teacher():
     assert any(not th.equal(a, b) for a, b in zip(before, model.policy.parameters()))
 
 
+def test_style_pairs_label_the_same_states_under_swapped_styles():
+    from cpsim.conditions import FIELD_INDEX, PANEL, STYLE_MASK, TASK_FIELDS, profile
+    from cpsim.expert import ReactiveExpert
+
+    model = _model()
+    sim = cpsim.Simulator(list(_pool()), num_worlds=3, max_agents=4, seed=0)
+    plain = collect_episodes(model.policy, sim, ReactiveExpert(sim), beta=1.0, rng=np.random.default_rng(2))
+    sim = cpsim.Simulator(list(_pool()), num_worlds=3, max_agents=4, seed=0)
+    paired = collect_episodes(model.policy, sim, ReactiveExpert(sim), beta=1.0, rng=np.random.default_rng(2),
+                              style_pairs=1)
+    T, N = plain.labels.shape
+    assert paired.obs.shape == (T, 2 * N, plain.obs.shape[-1])
+    # the driven half is the plain episode, bit for bit: the swap leaves the world alone
+    assert th.equal(paired.obs[:, :N], plain.obs) and th.equal(paired.labels[:, :N], plain.labels)
+    assert th.equal(paired.mask[:, N:], plain.mask) and th.equal(paired.value_mask[:, :N], plain.mask)
+    assert not paired.value_mask[:, N:].any()
+    # the copy differs only in the condition slice, which holds a panel style and the same task
+    layout = sim.obs_layout
+    live = plain.mask
+    other = th.ones(plain.obs.shape[-1], dtype=th.bool)
+    other[layout.condition] = False
+    assert th.equal(paired.obs[:, N:][live][:, other], plain.obs[live][:, other])
+    cond = paired.obs[:, N:][live][:, layout.condition]
+    panel = th.as_tensor(np.stack([cpsim.normalize_condition(profile(p)) for p in PANEL]))[:, th.as_tensor(STYLE_MASK)]
+    style = cond[:, th.as_tensor(STYLE_MASK)]
+    assert th.isclose(style[:, None, :], panel[None].float(), atol=1e-5).all(-1).any(-1).all()
+    task = [FIELD_INDEX[f] for f in TASK_FIELDS]
+    assert th.allclose(cond[:, task], plain.obs[live][:, layout.condition][:, task])
+    # and the teacher's labels under the swapped styles differ somewhere
+    assert (paired.labels[:, N:][live] != plain.labels[live]).any()
+    # imitate_expert trains on both halves
+    model = _model()
+    history = imitate_expert(model, config=ImitationConfig(iterations=1, num_worlds=3, epochs=1, batch_sequences=8,
+                                                           teacher="reactive", style_pairs=1), log=None)
+    assert history[0]["transitions"] > 0
+    with pytest.raises(ValueError, match="style_pairs"):
+        ImitationConfig(style_pairs=-1)
+
+
 def test_imitate_expert_rejects_a_mismatched_observation_space():
     model = _model()
     with pytest.raises(ValueError, match="observation shape"):
