@@ -92,6 +92,9 @@ class ImitationConfig:
                 raise ValueError(f"ImitationConfig.{name}: must be an integer >= 1, got {value!r}")
         if not isinstance(self.style_pairs, (int, np.integer)) or self.style_pairs < 0:
             raise ValueError(f"ImitationConfig.style_pairs: must be an integer >= 0, got {self.style_pairs!r}")
+        if self.style_pairs and self.teacher == "tracking":
+            raise ValueError("ImitationConfig.style_pairs: the tracking teacher ignores the style, so its swapped "
+                             "labels would teach the student to ignore it too; use a reactive teacher")
         for name in ("beta", "decay", "gamma"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
@@ -182,13 +185,15 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
         obs_buf[t, :N] = obs
         labels[t, :N] = label
         mask[t] = live
-        for k, cond_k in enumerate(swapped, start=1):
-            live_conditions.copy_(cond_k)
-            labels[t, k * N:(k + 1) * N] = expert.actions().reshape(-1).long()
-            obs_buf[t, k * N:(k + 1) * N] = sim.obs_layout.replace_condition(obs, cond_k.reshape(N, -1)) \
-                * live.reshape(-1, 1)
-        if swapped:
-            live_conditions.copy_(original)
+        try:
+            for k, cond_k in enumerate(swapped, start=1):
+                live_conditions.copy_(cond_k)
+                labels[t, k * N:(k + 1) * N] = expert.actions().reshape(-1).long()
+                obs_buf[t, k * N:(k + 1) * N] = sim.obs_layout.replace_condition(obs, cond_k.reshape(N, -1)) \
+                    * live.reshape(-1, 1)
+        finally:  # the world drives on under the conditions it was reset with
+            if swapped:
+                live_conditions.copy_(original)
         sim.step(action.reshape(W, A).to(th.int32))
         rewards[t] = sim.reward.reshape(-1) * live
         if bool(sim.world_done.all()):

@@ -253,8 +253,8 @@ class ReactiveStyle:
     drove through the goal of 12 % of the training agents too fast to count, and timed them
     out; version 3 completes 85.0 % of 192 training tasks' agents against 74.2 %, timeouts
     13.9 % against 24.2 % (check: ``docs/results/anchor_failures/goal_speed.py``).
-    The evaluation criterion's goal speed (30 m/s) is above the dynamics' top speed, so
-    version 3 drives exactly as version 2 in the evaluator.
+    Under the evaluation goal criterion (100 m/s) version 3 brakes for no goal, so it drives
+    exactly as version 2 in the evaluator.
 
     Attributes:
         schedule: speed factor on the logged schedule (the log replayed this many times as fast).
@@ -275,9 +275,9 @@ class ReactiveStyle:
             reaching ``0.8 g`` at ``0.5 r`` from the goal takes this much braking, it brakes
             at the rate needed, so it enters the goal radius slow enough to count instead of
             driving through it. ``None``: no goal speed limit (the first two versions, which
-            under p_train's goal speeds time out 12 % of training agents this way). It never
-            acts under the evaluation goal criterion (goal speed 30 m/s, above the jerk
-            dynamics' 20 m/s).
+            under p_train's goal speeds time out 12 % of training agents this way). It follows
+            the goal test in use, so it never acts under the evaluation goal criterion (100
+            m/s).
         exponent: shape of the mapping from boldness to every parameter above (1: linear).
     """
 
@@ -441,15 +441,22 @@ class ReactiveExpert(TrackingExpert):
         +big). The straight-line distance to the goal is used: it is never longer than the
         path, so the agent brakes early rather than late.
 
-        v: current speeds (N,) m/s; goal position, goal radius and goal speed are read from
-        the simulator and the agents' live conditions.
+        v: current speeds (N,) m/s; the goal position is the simulator's, the goal radius and
+        speed those of the goal test in use (``SimConfig.goal_criterion``: each agent's live
+        condition, or one criterion for every agent).
         """
         from cpsim.conditions import FIELD_INDEX
+        from cpsim.config import GOAL_CRITERIA
 
         sim = self.sim
-        cond = self._conditions.reshape(v.shape[0], -1)
-        radius = cond[:, FIELD_INDEX["goal_radius"]]
-        v_goal = 0.8 * cond[:, FIELD_INDEX["goal_speed"]]
+        criterion = GOAL_CRITERIA[sim.config.goal_criterion]
+        if criterion is None:  # each agent's own task fields decide its goal test
+            cond = self._conditions.reshape(v.shape[0], -1)
+            radius = cond[:, FIELD_INDEX["goal_radius"]]
+            v_goal = 0.8 * cond[:, FIELD_INDEX["goal_speed"]]
+        else:  # one test for everyone (the evaluation criterion): its radius and speed
+            radius = torch.full_like(v, criterion.radius)
+            v_goal = torch.full_like(v, 0.8 * criterion.speed)
         dist = torch.linalg.norm(sim.xy.reshape(-1, 2) - sim.goal.reshape(-1, 2), dim=-1)
         room = (dist - 0.5 * radius).clamp(min=0.5)
         need = (v_goal ** 2 - v ** 2) / (2.0 * room)

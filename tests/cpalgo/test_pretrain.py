@@ -138,9 +138,19 @@ def test_style_pairs_label_the_same_states_under_swapped_styles():
     model = _model()
     history = imitate_expert(model, config=ImitationConfig(iterations=1, num_worlds=3, epochs=1, batch_sequences=8,
                                                            teacher="reactive", style_pairs=1), log=None)
-    assert history[0]["transitions"] > 0
+    single = imitate_expert(_model(), config=ImitationConfig(iterations=1, num_worlds=3, epochs=1, batch_sequences=8,
+                                                             teacher="reactive"), log=None)
+    # the round counts the driven transitions, not the labelled copies
+    assert history[0]["transitions"] == single[0]["transitions"] > 0
     with pytest.raises(ValueError, match="style_pairs"):
         ImitationConfig(style_pairs=-1)
+    with pytest.raises(ValueError, match="tracking teacher ignores the style"):
+        ImitationConfig(style_pairs=1, teacher="tracking")
+    # returns are repeated, but the critic sees the driven copy only
+    assert th.equal(paired.returns[:, N:], plain.returns)
+    ce, mse = imitation_losses(model.policy, paired.obs, paired.labels, paired.mask, paired.returns,
+                               th.zeros_like(paired.mask))
+    assert mse.item() == 0.0 and ce.item() > 0.0
 
 
 def test_imitate_expert_rejects_a_mismatched_observation_space():

@@ -195,6 +195,10 @@ def test_reactive_expert_brakes_for_its_goal_speed_and_then_completes_the_task()
             sim.step(expert.actions())
         return int(sim.outcome.numpy()[0, 0])
 
+    # under the evaluation goal criterion (100 m/s for everyone) there is no goal speed to brake for
+    sim = cpsim.Simulator([scene(15.0)], num_worlds=1, max_agents=2, seed=0, config={"goal_criterion": "evaluation"})
+    sim.reset(conditions=_with_task("normal", 3.0))
+    assert float(ReactiveExpert(sim, style=limited).targets()[0][0, 0]) == pytest.approx(a_long(free, 15.0, 3.0), abs=1e-4)
     assert REACTIVE_STYLE_V2.goal_brake is None and ReactiveStyle().goal_brake is not None
     assert outcome("reactive-v2") != int(Outcome.GOAL)
     assert outcome("reactive") == int(Outcome.GOAL)

@@ -3,7 +3,8 @@ checkpoint drives 192 procedural training tasks under p_train conditions for ``-
 the worlds are snapshotted, and every POLICY agent is re-driven from there twice, with the
 style fields of the cautious and of the aggressive profile (task fields kept), all agents of the
 world under the same swap. Reported: per agent alive at the root, the largest distance between
-its two positions over the next 10 and 30 decisions (argmax actions for a checkpoint).
+its two positions over the next 10 and 30 decisions while it drives in both copies (argmax
+actions for a checkpoint).
 
     python docs/results/anchor_failures/style_spread.py reactive
     python docs/results/anchor_failures/style_spread.py zoo/anchor.zip
@@ -59,19 +60,23 @@ def main() -> None:
     root = sim.snapshot(np.arange(W))
     alive = sim.alive.cpu().numpy() & policy
     root_memory = memory["state"]
-    tracks = {}
+    tracks, driving = {}, {}
     for style in ("cautious", "aggressive"):
         sim.restore(root, np.arange(W))
         memory["state"] = root_memory
         styled = cond.copy()
         styled[..., STYLE_MASK] = PROFILES[style][STYLE_MASK]
         sim.set_conditions(styled)
-        xy = []
+        xy, on = [], []
         for _ in range(30):
             sim.step(actions())
             xy.append(sim.xy.cpu().numpy().copy())
-        tracks[style] = np.stack(xy)  # (30, W, A, 2)
-    gap = np.linalg.norm(tracks["cautious"] - tracks["aggressive"], axis=-1)  # (30, W, A)
+            on.append(sim.alive.cpu().numpy().copy())
+        tracks[style], driving[style] = np.stack(xy), np.stack(on)  # (30, W, A, 2), (30, W, A)
+    # an agent removed in one copy (goal, collision, off-road) stops there: compare the steps it
+    # drives in both copies
+    both = np.cumprod(driving["cautious"] & driving["aggressive"], axis=0).astype(bool)
+    gap = np.where(both, np.linalg.norm(tracks["cautious"] - tracks["aggressive"], axis=-1), 0.0)
     for h in (10, 30):
         g = gap[:h].max(0)[alive]
         print(f"{args.driver}: {alive.sum()} agents, cautious vs aggressive within {h} decisions: median "
