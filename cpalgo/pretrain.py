@@ -162,7 +162,7 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
     sim.reset(scenario_index=pool, conditions=conds)
     swapped = [_swap_styles(conds, rng) for _ in range(style_pairs)]
     live_conditions = sim.conditions  # (W, A, 10) view the expert reads
-    original = live_conditions.clone()
+    original = live_conditions.clone() if swapped else None
     T = sim.config.episode_steps
     device = policy.device
     states = zero_states(policy, N, device)
@@ -218,9 +218,7 @@ def _swap_styles(conditions: np.ndarray, rng: np.random.Generator) -> th.Tensor:
     from cpsim.conditions import PANEL, STYLE_MASK, profile
 
     styles = np.stack([profile(name) for name in PANEL])[rng.integers(0, len(PANEL), size=conditions.shape[:-1])]
-    out = np.array(conditions, dtype=np.float32, copy=True)
-    out[..., STYLE_MASK] = styles[..., STYLE_MASK]
-    return th.as_tensor(out)
+    return th.as_tensor(np.where(STYLE_MASK, styles, conditions).astype(np.float32))
 
 
 def _sequence_forward(policy, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
