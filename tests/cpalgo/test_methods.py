@@ -63,6 +63,8 @@ def test_registry_lists_every_method_of_the_issue_one_line_each():
     assert all(line.split()[0] in names for line in lines)
     # the settings that make each ablation what it is
     assert get_method("cp-fixed-30").settings == {"backtrack": "fixed", "fixed_depth": 30}
+    assert get_method("cp-fixed-70").settings == {"backtrack": "fixed", "fixed_depth": 70}
+    assert get_method("cp-fixed-70").group == "ablation"
     assert get_method("cp-only-aggressive").settings["panel"] == ("aggressive",) * 5
     assert get_method("cp-only-aggressive").settings["shared_randomness"] is False
     assert get_method("cp-no-style").settings == {"style_change": False}
