@@ -30,10 +30,15 @@ import time
 
 import numpy as np
 import torch as th
+from sb3_contrib.common.recurrent.type_aliases import RNNStates
 
+from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits, zero_states
 from cpalgo.counterplay.search import BranchOutcome, admit, rank_branches
+from cpalgo.evaluate.runner import load_model
+from cpalgo.pretrain import _policy_obs
 from cpsim.conditions import PANEL, PROFILES, STYLE_MASK, sample_conditions
 from cpsim.config import Controller, Outcome, SimConfig
+from cpsim.expert import make_expert
 from cpsim.scenario.procedural import train_pool
 from cpsim.simulator import Simulator
 
@@ -49,8 +54,6 @@ class Driver:
         self.argmax = argmax
         self.policy = None
         if name.endswith(".zip"):
-            from cpalgo.evaluate.runner import load_model
-
             self.policy = load_model(name, "driver").policy
             self.policy.set_training_mode(False)
 
@@ -58,12 +61,8 @@ class Driver:
         """Drive ``sim`` from here on (memory: RNNStates for its W*A slots, or zeros)."""
         self.sim = sim
         if self.policy is None:
-            from cpsim.expert import make_expert
-
             self.expert = make_expert(self.name, sim)
             return
-        from cpalgo.common.policy_utils import zero_states
-
         n = sim.num_worlds * sim.max_agents
         self.states = memory if memory is not None else zero_states(self.policy, n, self.policy.device)
         self.starts = th.full((n,), 0.0 if memory is not None else 1.0)
@@ -73,9 +72,6 @@ class Driver:
         """(W, A) int32 actions; ``uniforms`` (W, A) are the draws of a sampling checkpoint."""
         if self.policy is None:
             return self.expert.actions()
-        from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits
-        from cpalgo.pretrain import _policy_obs
-
         sim = self.sim
         logits, _, self.states = policy_step_logits(self.policy, _policy_obs(sim), self.states, self.starts)
         self.starts = th.zeros_like(self.starts)
@@ -88,8 +84,6 @@ class Driver:
 
 def memory_rows(states, rows: np.ndarray):
     """The RNNStates of the given slot rows (a copy)."""
-    from sb3_contrib.common.recurrent.type_aliases import RNNStates
-
     idx = th.as_tensor(rows, dtype=th.long)
     return RNNStates(tuple(s[:, idx].clone() for s in states.pi), tuple(s[:, idx].clone() for s in states.vf))
 
@@ -168,8 +162,6 @@ def main() -> None:
         branch_sim.set_conditions(conds)
         memory = None
         if driver.policy is not None:
-            from sb3_contrib.common.recurrent.type_aliases import RNNStates
-
             parts = [memory_rows(memories[root], np.arange(w * A, (w + 1) * A)) for w, *_, root in part]
 
             def cat(which: str, i: int, parts=parts) -> th.Tensor:
