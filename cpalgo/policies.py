@@ -21,6 +21,9 @@ The classes here are drop-in replacements any sb3-contrib user can pass to plain
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch as th
 from sb3_contrib.common.recurrent.policies import (
     RecurrentActorCriticCnnPolicy,
@@ -28,9 +31,12 @@ from sb3_contrib.common.recurrent.policies import (
     RecurrentMultiInputActorCriticPolicy,
 )
 from torch import nn
+from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
 
 __all__ = [
     "fused_process_sequence",
+    "sequence_lengths",
+    "lengths_from_mask",
     "FusedLstmMixin",
     "MlpLstmPolicy",
     "CnnLstmPolicy",
@@ -46,10 +52,15 @@ def fused_process_sequence(
     lstm_states: LSTMState,
     episode_starts: th.Tensor,
     lstm: nn.LSTM,
+    lengths: th.Tensor | None = None,
 ) -> tuple[th.Tensor, LSTMState]:
     """LSTM over padded sequences, one ``nn.LSTM`` call when starts are only at the front.
 
-    Same contract as sb3-contrib's ``_process_sequence``.
+    Same contract as sb3-contrib's ``_process_sequence``. With ``lengths`` the call runs on
+    a packed sequence: the padding after each sequence's last counted step costs nothing,
+    and the output there is 0 instead of the LSTM's response to zero input (callers must
+    mask those rows out, as every PPO loss already does). The real rows are the same
+    function, and the final state is taken at each sequence's last counted step.
 
     Args:
         features: (n_seq * seq_len, input_size), sequence-major (all steps of sequence 0
@@ -57,6 +68,9 @@ def fused_process_sequence(
         lstm_states: (h, c), each (layers, n_seq, hidden): memory before the first step.
         episode_starts: (n_seq * seq_len,) float, 1 where the memory is reset before a step.
         lstm: the LSTM module.
+        lengths: optional (n_seq,) int64 on the CPU, each in [1, seq_len]: the steps of each
+            sequence that count (see :func:`sequence_lengths`); ignored when its size does
+            not match ``n_seq`` or when no step is padding.
     Returns:
         outputs (n_seq * seq_len, hidden) and the final (h, c).
     """
@@ -68,8 +82,56 @@ def fused_process_sequence(
         # call cannot do; step as sb3-contrib does
         return RecurrentActorCriticPolicy._process_sequence(features, lstm_states, episode_starts, lstm)
     keep = (1.0 - starts[0]).view(1, n_seq, 1)
-    output, final = lstm(features_sequence, (keep * lstm_states[0], keep * lstm_states[1]))
+    initial = (keep * lstm_states[0], keep * lstm_states[1])
+    seq_len = features_sequence.shape[0]
+    if lengths is not None and lengths.numel() == n_seq and seq_len > 1 and int(lengths.sum()) < n_seq * seq_len:
+        packed = pack_padded_sequence(features_sequence, lengths, enforce_sorted=False)
+        packed_out, final = lstm(packed, initial)
+        output, _ = pad_packed_sequence(packed_out, total_length=seq_len)
+    else:
+        output, final = lstm(features_sequence, initial)
     return th.flatten(output.transpose(0, 1), start_dim=0, end_dim=1), final
+
+
+def lengths_from_mask(mask: th.Tensor, n_seq: int) -> th.Tensor:
+    """Counted length of each padded sequence: one past its last nonzero mask entry.
+
+    Args:
+        mask: (n_seq * seq_len,) the loss mask of a minibatch (padding and, masked,
+            inactive steps are 0); only trailing zeros are cut, so a zero inside a
+            sequence still carries the memory through that step.
+        n_seq: number of sequences.
+    Returns:
+        (n_seq,) int64 on the CPU, each at least 1.
+    """
+    rows = (mask.detach().reshape(n_seq, -1) != 0).cpu()
+    seq_len = rows.shape[1]
+    last = seq_len - th.argmax(rows.flip(1).to(th.int8), dim=1)
+    return th.where(rows.any(dim=1), last, th.ones_like(last)).to(th.int64)
+
+
+@contextmanager
+def sequence_lengths(policy: nn.Module, mask: th.Tensor, n_seq: int) -> Iterator[None]:
+    """Within the block, a fused policy runs its training-sequence LSTM calls packed.
+
+    ``sb3-contrib`` pads every sequence of a minibatch to the longest (1.1-1.8x the real
+    steps with 32-64-step rollouts); the mask knows where the padding is, the policy does
+    not. Policies without the fused mixin ignore this.
+
+    Args:
+        policy: the policy whose ``evaluate_actions`` / ``get_distribution`` follows.
+        mask: (n_seq * seq_len,) minibatch loss mask (``rollout_data.mask``).
+        n_seq: sequences in the minibatch (``rollout_data.lstm_states.pi[0].shape[1]``).
+    """
+    if not isinstance(policy, FusedLstmMixin):
+        yield
+        return
+    previous = policy._sequence_lengths
+    policy._sequence_lengths = lengths_from_mask(mask, n_seq)
+    try:
+        yield
+    finally:
+        policy._sequence_lengths = previous
 
 
 class FusedLstmMixin:
@@ -80,7 +142,12 @@ class FusedLstmMixin:
     ``get_distribution``, ``predict_values``, the distillation student pass).
     """
 
-    _process_sequence = staticmethod(fused_process_sequence)
+    #: (n_seq,) counted lengths of the minibatch being evaluated (:func:`sequence_lengths`)
+    _sequence_lengths: th.Tensor | None = None
+
+    def _process_sequence(self, features: th.Tensor, lstm_states: LSTMState, episode_starts: th.Tensor,
+                          lstm: nn.LSTM) -> tuple[th.Tensor, LSTMState]:
+        return fused_process_sequence(features, lstm_states, episode_starts, lstm, self._sequence_lengths)
 
 
 class MlpLstmPolicy(FusedLstmMixin, RecurrentActorCriticPolicy):

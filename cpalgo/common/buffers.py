@@ -74,8 +74,32 @@ class _ActiveMaskMixin:
     active_only: bool = False
 
     def reset(self) -> None:
+        # a rollout cut short by the budget (truncate) shrank buffer_size: restore it
+        self.buffer_size = self.__dict__.setdefault("_full_size", self.buffer_size)  # type: ignore[attr-defined]
         super().reset()  # type: ignore[misc]
         self.active = np.ones((self.buffer_size, self.n_envs), dtype=np.float32)  # type: ignore[attr-defined]
+
+    def truncate(self, steps: int) -> None:
+        """Keep the first ``steps`` rows of a rollout that stopped early (the post-training
+        budget was reached mid-rollout): every (n_steps, ...) array is cut, the buffer
+        counts as full, and GAE bootstraps from the value after the last kept step, as at
+        the end of a full rollout. The next :meth:`reset` restores the full size."""
+        steps = int(steps)
+        size = int(self.buffer_size)  # type: ignore[attr-defined]
+        if self.generator_ready:  # type: ignore[attr-defined]
+            raise ValueError("truncate: the buffer was already flattened for sampling")
+        if not 1 <= steps <= size or steps != int(self.pos):  # type: ignore[attr-defined]
+            raise ValueError(f"steps: expected the {self.pos} rows added so far (1..{size}), got {steps}")  # type: ignore[attr-defined]
+        if steps == size:
+            return
+        for name, value in list(self.__dict__.items()):
+            if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == size:
+                self.__dict__[name] = value[:steps].copy()
+            elif isinstance(value, dict) and value and all(
+                    isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == size for v in value.values()):
+                self.__dict__[name] = {k: v[:steps].copy() for k, v in value.items()}
+        self.buffer_size = steps  # type: ignore[attr-defined]
+        self.full = True  # type: ignore[attr-defined]
 
     def add(self, *args: Any, active: np.ndarray | None = None, **kwargs: Any) -> None:
         """Add one step; ``active`` (n_envs,) bool marks the slots whose data counts

@@ -35,6 +35,8 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.utils import explained_variance
 
+from cpalgo.policies import sequence_lengths
+
 __all__ = ["ScheduledTerms", "UpdateLog", "begin_update", "run_update", "spread_schedule"]
 
 #: ``(rollout_data, mask, logits) -> {name: scalar term}``: see :func:`run_update`.
@@ -141,9 +143,11 @@ def _ppo_loss(model: Any, rollout_data: Any, actions: th.Tensor, mask: th.Tensor
         ``(loss, log_prob)``: the scalar loss and the (n,) log-probabilities of ``actions``
         under the current policy; the per-term values are appended to ``log``.
     """
-    values, log_prob, entropy = model.policy.evaluate_actions(
-        rollout_data.observations, actions, rollout_data.lstm_states, rollout_data.episode_starts,
-    )
+    # the padding after each sequence's last counted step is skipped by a fused policy's LSTM
+    with sequence_lengths(model.policy, mask, rollout_data.lstm_states.pi[0].shape[1]):
+        values, log_prob, entropy = model.policy.evaluate_actions(
+            rollout_data.observations, actions, rollout_data.lstm_states, rollout_data.episode_starts,
+        )
     values = values.flatten()
     advantages = rollout_data.advantages
     if model.normalize_advantage:

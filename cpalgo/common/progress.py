@@ -4,8 +4,9 @@ SB3's ``ProgressBarCallback`` adds ``num_envs`` per step against ``total_timeste
 a batched self-play env it overshoots (245,760 / 200,000) and sits at 100 % through the
 last update. This bar follows ``model.num_timesteps`` (B_post for CounterPlay: live
 transitions of main rollouts and branches), re-estimates its total after every rollout
-as "the generations still needed x the last generation's size" (exact once the last
-generation has run), and names the phase: rollout, search, train.
+as the target when the model cuts its last rollout there (``stops_exactly``: a budget
+is set), else as "the generations still needed x the last generation's size"
+(exact once the last generation has run), and names the phase: rollout, search, train.
 """
 
 from __future__ import annotations
@@ -57,8 +58,11 @@ class LearnProgressBar(BaseCallback):
         per_generation = max(1, int(self.model.num_timesteps) - self._generation_start)
         self._generation_start = int(self.model.num_timesteps)
         left = max(0, self._target - done)
-        # learn stops at the first generation boundary at or past the target
-        self.pbar.total = done + -(-left // per_generation) * per_generation
+        if getattr(self.model, "stops_exactly", False):
+            self.pbar.total = max(self._target, done)  # the last rollout is cut at the target
+        else:
+            # learn stops at the first generation boundary at or past the target
+            self.pbar.total = done + -(-left // per_generation) * per_generation
         self._sync()
 
     def _on_training_end(self) -> None:

@@ -19,7 +19,9 @@ lives in :mod:`cpalgo.counterplay.driver`):
    losses.
 6. **Budget** (``model.budget``): B_post = main + factual + candidate + verification live
    agent transitions. ``num_timesteps`` counts B_post, so ``learn(B)`` stops at the first
-   generation boundary where B_post >= B, for CounterPlay and for every method built on it.
+   generation boundary where B_post >= B. With ``post_budget`` (every registered method's
+   ``learn(B)``, :mod:`cpalgo.methods`) the rollout stops at the step that reaches it
+   instead: that last rollout is cut there and still learned from.
    Branch transitions of g's searches <= ``branch_cap`` x g's main transitions.
 7. **Live slots only**: inactive ``SelfPlayVecEnv`` slots are skipped by rollout inference
    and by every minibatch (:mod:`cpalgo.common.buffers`), and count in no budget.
@@ -101,8 +103,9 @@ class CounterPlay(RecurrentPPO):
         distill_minibatches: minibatch updates per generation that carry the term (4).
         deploy_condition: profile name or raw 10-vector the student is trained under.
         branch_cap: branch transitions of g's searches <= branch_cap x g's main transitions.
-        post_budget: optional hard cap: no generation starts once B_post reaches it
-            (``learn(total_timesteps)`` already counts B_post; None: no extra cap).
+        post_budget: optional hard cap: the rollout stops at the step where B_post reaches
+            it, and branch work never runs past it (``learn(total_timesteps)`` already
+            counts B_post; None: no extra cap).
         mask_inactive: skip inactive slots (``info["active"]`` / ``env.active_mask()``) in
             inference, minibatches, losses and the budget.
         max_searches: optional cap on searches per generation (None: the budget decides).
@@ -310,7 +313,8 @@ class CounterPlay(RecurrentPPO):
               tb_log_name: str = "CounterPlay", reset_num_timesteps: bool = True, progress_bar: bool = False) -> Any:
         """``RecurrentPPO.learn`` where ``total_timesteps`` is B_post: live agent transitions
         of the main rollouts plus every branch transition (all slots when
-        ``mask_inactive=False``). Stops at the first generation boundary that reaches it."""
+        ``mask_inactive=False``). Stops at the first generation boundary that reaches it; with
+        ``post_budget`` set, at the rollout step that reaches that (see ``post_budget``)."""
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
     # ================================================================== rollout
@@ -408,6 +412,12 @@ class CounterPlay(RecurrentPPO):
                 self._driver.advance(n_steps, n_rollout_steps)
                 self._set_phase("rollout")
 
+            if n_steps < n_rollout_steps and self.budget.exhausted:
+                # B_post reached mid-rollout: learn from the steps taken, so every method
+                # stops within one step of live agents of the same budget
+                rollout_buffer.truncate(n_steps)
+                break
+
         with th.no_grad():
             # Compute value for the last timestep
             episode_starts = th.tensor(dones, dtype=th.float32, device=self.device)
@@ -420,6 +430,13 @@ class CounterPlay(RecurrentPPO):
         callback.on_rollout_end()
 
         return True
+
+    @property
+    def stops_exactly(self) -> bool:
+        """Whether ``learn`` cuts its last rollout at the step that reaches the budget: with
+        ``post_budget`` set (every registered method's ``learn(B)``). Without it, ``learn``
+        runs whole generations, as the parent does."""
+        return self.budget.post_budget is not None
 
     def _counted_transitions(self, env: VecEnv) -> int:
         """Transitions of the step just taken that count toward B_post: the slots that were

@@ -4,7 +4,9 @@ B_post = main + factual + candidate (+ verification) transitions. One transition
 live agent stepping once: every live agent of every branch world counts, rejected retries
 included. The searches of generation g run during generation g+1; their branch
 transitions are capped at ``branch_cap`` times g's main transitions (the allowance opened
-at the end of g's rollout).
+at the end of g's rollout) and by what is left of ``post_budget``. The main rollout stops
+at the step where the total reaches ``post_budget`` (``CounterPlay.collect_rollouts``), so a
+run ends within one step of live agents of its budget.
 """
 
 from __future__ import annotations
@@ -85,9 +87,17 @@ class Budget:
         self.allowance_used = 0
 
     @property
+    def remaining(self) -> int | None:
+        """Transitions left before ``post_budget`` (None: no limit)."""
+        return None if self.post_budget is None else max(0, int(self.post_budget) - self.total)
+
+    @property
     def generation_allowance(self) -> int:
-        """Branch transitions the searches now running may still use under the cap."""
-        return max(0, int(self.branch_cap * self.allowance_main) - self.allowance_used)
+        """Branch transitions the searches now running may still use: under the cap, and
+        never past ``post_budget`` (so no branch work overshoots the budget)."""
+        allowance = max(0, int(self.branch_cap * self.allowance_main) - self.allowance_used)
+        left = self.remaining
+        return allowance if left is None else min(allowance, left)
 
     def fits(self, projected: int) -> bool:
         """Whether a projected number of branch transitions still fits this generation."""

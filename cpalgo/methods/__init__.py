@@ -15,7 +15,7 @@ The equal-budget contract (what a method must do to be registered)
   (``budget.add_main``; CounterPlay's rollout already does it for the learner's slots) and
   anything else it runs (branches, continuations, groups of rollouts: ``budget.add_branch``
   or ``add_main``), rejected or not.
-* ``model.learn(B)`` stops at the first generation boundary where ``model.budget.total >= B``
+* ``model.learn(B)`` stops at the rollout step where ``model.budget.total >= B``
   (the mixin does this and anneals the learning-rate schedule over ``B``).
 * Optional hook ``model.on_anchor_loaded()``: called right after the anchor's weights are
   loaded (freeze a teacher, start an opponent pool, ...).

@@ -4,7 +4,9 @@ Every method of :mod:`cpalgo.methods` is a subclass of :class:`cpalgo.CounterPla
 is sb3-contrib's ``RecurrentPPO`` with hooks) and inherits :class:`EqualBudgetMixin`, so
 ``model.learn(B)`` means the same thing for all of them: train until ``B_post``, the
 number of live agent transitions the method simulated (main rollout, branches, rewinds,
-opponents, all counted in ``model.budget``), reaches ``B`` at a generation boundary.
+opponents, all counted in ``model.budget``), reaches ``B``: the last rollout stops at the
+step that reaches it (``CounterPlay.collect_rollouts``), so every method ends within one
+step of live agents of ``B``.
 """
 
 from __future__ import annotations

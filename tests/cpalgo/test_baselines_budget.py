@@ -1,5 +1,5 @@
 """The six adapted baselines under the equal-budget contract: ``learn(B)`` stops at the
-first generation boundary where B_post (main + continuation transitions) reaches B, and a
+rollout step where B_post (main + continuation transitions) reaches B, and a
 tiny ``counterplay experiment`` grid runs all six end to end."""
 
 from __future__ import annotations
@@ -64,9 +64,10 @@ def test_every_baseline_stops_at_the_same_budget(anchor, name):
                          settings=tiny_settings(name), seed=0)
     model.learn(budget)
     b = model.budget
-    assert b.total >= budget
+    # stopped at the rollout step that reached it: within one step of the live slots
+    assert budget <= b.total < budget + model.n_envs
     before_last = sum(g["main"] + g["branch"] for g in b.history[:-1])
-    assert before_last < budget  # stopped at the first generation boundary that reached it
+    assert before_last < budget
     assert model.num_timesteps == b.total  # SB3's counter is B_post too
     assert model._current_progress_remaining == pytest.approx(max(0.0, 1.0 - b.total / budget))
     assert model.policy.optimizer.param_groups[0]["lr"] < 0.5 * 3e-4  # annealed over the budget

@@ -140,9 +140,17 @@ def test_post_budget_stops_learn():
                         n_steps=16, batch_size=32, n_epochs=1, device="cpu",
                         policy_kwargs=dict(lstm_hidden_size=8, net_arch=[8]))
     model.learn(10_000)
-    # each generation counts 16 steps of active slots (about 40 transitions): stops after the 3rd
-    assert 100 <= model.budget.total < 100 + 16 * 4
-    assert model.num_timesteps < 10_000
+    # each generation counts 16 steps of active slots (about 40 transitions): the 3rd
+    # rollout stops at the step that reaches 100 and is still learned from
+    b = model.budget
+    assert 100 <= b.total < 100 + model.n_envs
+    assert model.num_timesteps < 10_000 and b.generations == 3
+    assert b.history[-1]["main"] < b.history[0]["main"]
+    assert model.rollout_buffer.buffer_size < 16 and model._n_updates == 3
+    # a further learn starts from a full-size buffer again
+    model.post_budget = model.budget.post_budget = None
+    model.learn(40, reset_num_timesteps=False)
+    assert model.rollout_buffer.buffer_size == 16 and model.budget.generations >= 4
 
 
 def test_save_load_continue(tmp_path):

@@ -265,9 +265,10 @@ def test_every_method_stops_at_the_same_budget(anchor, name):
                          seed=0)
     model.learn(budget)
     b = model.budget
-    assert b.total >= budget
+    # stopped at the rollout step that reached it: within one step of the live slots
+    assert budget <= b.total < budget + model.n_envs
     before_last = sum(g["main"] + g["branch"] for g in b.history[:-1])
-    assert before_last < budget  # stopped at the first generation boundary that reached it
+    assert before_last < budget
     assert model.num_timesteps == b.total  # SB3's counter is B_post too
     assert model._current_progress_remaining == pytest.approx(max(0.0, 1.0 - b.total / budget))
     # the learning rate annealed over the budget (cosine: 0 at the end)

@@ -12,7 +12,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from cpalgo import CounterPlay
 from cpalgo.common.buffers import MaskedRecurrentRolloutBuffer
-from cpalgo.policies import MlpLstmPolicy, fused_process_sequence
+from cpalgo.policies import MlpLstmPolicy, fused_process_sequence, lengths_from_mask, sequence_lengths
 
 pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
@@ -71,6 +71,53 @@ def test_fused_path_runs_one_lstm_call_and_steps_only_with_inner_starts():
     obs, starts, h, c = _sequences(n_seq=4, seq_len=8, inside=True)
     fused_process_sequence(obs, (h, c), starts, lstm)
     assert len(calls) == 8  # stepping fallback
+
+
+def test_lengths_from_mask_cuts_only_trailing_zeros():
+    mask = th.tensor([[1, 1, 0, 0], [1, 0, 1, 0], [0, 0, 0, 0], [1, 1, 1, 1]], dtype=th.float32).reshape(-1)
+    assert lengths_from_mask(mask, 4).tolist() == [2, 3, 1, 4]
+
+
+@pytest.mark.parametrize("enable_critic_lstm", [False, True])
+def test_packed_sequences_equal_padded_on_counted_rows_and_gradients(enable_critic_lstm: bool):
+    _, fused = _pair(enable_critic_lstm)
+    n_seq, seq_len = 6, 9
+    obs, starts, h, c = _sequences(n_seq=n_seq, seq_len=seq_len, inside=False)
+    lengths = th.tensor([9, 3, 1, 7, 5, 2])
+    mask = (th.arange(seq_len)[None, :] < lengths[:, None]).float().reshape(-1)
+    # a zero inside a sequence (an inactive step) is not padding: the memory crosses it
+    mask[1 * seq_len + 1] = 0.0
+    obs = obs * mask[:, None].clamp(min=0.5)  # padding rows differ from real ones
+    actions = th.randint(0, 5, (obs.shape[0],), generator=th.Generator().manual_seed(2))
+    from sb3_contrib.common.recurrent.type_aliases import RNNStates
+
+    states = RNNStates((h, c), (h.flip(1), c.flip(1)))
+    calls: list[object] = []
+    fused.lstm_actor.register_forward_hook(lambda _m, args, _o: calls.append(args[0]))
+
+    def loss_and_grads(packed: bool):
+        fused.zero_grad()
+        if packed:
+            with sequence_lengths(fused, mask, n_seq):
+                out = fused.evaluate_actions(obs, actions, states, starts)
+        else:
+            out = fused.evaluate_actions(obs, actions, states, starts)
+        keep = mask > 0
+        loss = (out[0].flatten()[keep] ** 2).mean() - out[1][keep].mean() - out[2][keep].mean()
+        loss.backward()
+        return out, {k: p.grad.clone() for k, p in fused.named_parameters() if p.grad is not None}
+
+    (v_pad, lp_pad, ent_pad), g_pad = loss_and_grads(False)
+    (v_pk, lp_pk, ent_pk), g_pk = loss_and_grads(True)
+    real = mask > 0
+    assert th.allclose(v_pad.flatten()[real], v_pk.flatten()[real], atol=1e-5)
+    assert th.allclose(lp_pad[real], lp_pk[real], atol=1e-5)
+    assert th.allclose(ent_pad[real], ent_pk[real], atol=1e-5)
+    assert g_pad.keys() == g_pk.keys() and all(th.allclose(g_pad[k], g_pk[k], atol=1e-5) for k in g_pad)
+    # the packed call really skipped the padding, and the hint does not outlive the block
+    assert isinstance(calls[-1], th.nn.utils.rnn.PackedSequence)
+    assert int(calls[-1].data.shape[0]) == int(lengths.sum())
+    assert fused._sequence_lengths is None
 
 
 def test_recurrent_ppo_accepts_the_fused_policy_and_learns_the_same():
