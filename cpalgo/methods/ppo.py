@@ -247,8 +247,12 @@ class RewindPPO(EqualBudgetMixin, CounterPlay):
         if not st.pending:
             return
         # agents of a rewound world still driving are cut: bootstrap like a truncated episode,
-        # except on the rollout's last step (SB3's final-value bootstrap covers it)
-        if self.rollout_buffer.pos >= self.rollout_buffer.buffer_size - 1:
+        # except on the rollout's last step (SB3's final-value bootstrap covers it), which is
+        # also the step that reaches post_budget: the rollout is cut right after it
+        # (num_timesteps already counts this step, budget.total not yet)
+        post = self.budget.post_budget
+        if self.rollout_buffer.pos >= self.rollout_buffer.buffer_size - 1 or (
+                post is not None and self.num_timesteps >= int(post)):
             return
         worlds = np.fromiter(st.pending, np.int64)
         cut = (was_active & ~done).reshape(st.num_worlds, a)
