@@ -553,6 +553,7 @@ def build_parser() -> argparse.ArgumentParser:
               "tasks per split.")
     common(run)
     post_options(run)
+    from cpalgo.compress import add_command as add_compress_command
     from cpalgo.experiments.command import add_commands, main_job_defaults
 
     run.set_defaults(anchor=DEFAULT_ANCHOR, config=DEFAULT_POST_CONFIG, **main_job_defaults())
@@ -650,6 +651,7 @@ def build_parser() -> argparse.ArgumentParser:
     po.set_defaults(func=cmd_pool)
 
     add_commands(add)  # experiment, methods (cpalgo.experiments.command)
+    add_compress_command(add)  # compress-anchor (cpalgo.compress)
     return parser
 
 
