@@ -285,7 +285,8 @@ def distill_policy(model: Any, teacher: Any, scenarios: Sequence[Any], config: D
 
 def compress_checkpoint(anchor: str, out: str, features_dim: int = 128, config: DistillConfig | None = None,
                         scenarios: Sequence[Any] | None = None, max_agents: int = 8, fit_worlds: int = 64,
-                        seed: int = 0, log: Callable[[str], None] | None = print) -> dict[str, Any]:
+                        seed: int = 0, log: Callable[[str], None] | None = print,
+                        init: str | None = None) -> dict[str, Any]:
     """Factorise a flat RecurrentPPO checkpoint into the encoder network, distill, save.
 
     Args:
@@ -297,6 +298,7 @@ def compress_checkpoint(anchor: str, out: str, features_dim: int = 128, config: 
         scenarios: rollout scenarios (default: the procedural training pool of 192).
         max_agents: agent slots per world of the rollouts.
         fit_worlds: worlds of the teacher-driven episode whose observations fit the factorisation.
+        init: an earlier output of this function to continue distilling (no new factorisation).
     Returns:
         a JSON-able report: the fit (:func:`factorize_input_layers`), the rounds, the wall time.
     """
@@ -322,14 +324,23 @@ def compress_checkpoint(anchor: str, out: str, features_dim: int = 128, config: 
         "vf_coef", "max_grad_norm")}
     model = type(teacher)("MlpLstmPolicy", env, seed=seed, device="cpu",
                           policy_kwargs=encoder_policy_kwargs(teacher.policy_kwargs, features_dim), **hyper)
-    sim = Simulator(scenarios, num_worlds=fit_worlds, max_agents=max_agents, seed=seed + 1)
-    fit_batch = collect_teacher_episodes(teacher.policy, teacher.policy, sim, 1.0, np.random.default_rng(seed + 1),
-                                         cfg)
-    observations = fit_batch.obs[fit_batch.mask].numpy()
-    fit = factorize_input_layers(teacher.policy, model.policy, observations)
-    if log is not None:
-        log(f"factorised to rank {features_dim} on {observations.shape[0]} observations: relative error "
-            f"{fit['relative_error']:.4f} (actor {fit['actor_relative_error']:.4f})")
+    fit: dict[str, Any] = {}
+    if init is not None:
+        try:
+            model.set_parameters(init, exact_match=True, device="cpu")
+        except Exception as exc:  # noqa: BLE001 - reported with the file name
+            raise ValueError(f"init: {init} is not a {features_dim}-feature encoder network of this anchor "
+                             f"({exc})") from None
+        fit = {"init": str(init)}
+    else:
+        sim = Simulator(scenarios, num_worlds=fit_worlds, max_agents=max_agents, seed=seed + 1)
+        fit_batch = collect_teacher_episodes(teacher.policy, teacher.policy, sim, 1.0,
+                                             np.random.default_rng(seed + 1), cfg)
+        observations = fit_batch.obs[fit_batch.mask].numpy()
+        fit = factorize_input_layers(teacher.policy, model.policy, observations)
+        if log is not None:
+            log(f"factorised to rank {features_dim} on {observations.shape[0]} observations: relative error "
+                f"{fit['relative_error']:.4f} (actor {fit['actor_relative_error']:.4f})")
     # a checkpoint after every round: a long run that is cut off keeps its last good round
     rounds = distill_policy(model, teacher.policy, scenarios, cfg, max_agents=max_agents, seed=seed, log=log,
                             on_round=lambda _row: save_model_atomic(model, out))
@@ -347,6 +358,8 @@ def add_command(add: Callable[..., Any]) -> None:
             "beside it.")
     p.add_argument("--anchor", default="zoo/anchor.zip", metavar="ZIP", help="flat anchor checkpoint")
     p.add_argument("--out", default="runs/anchor_fast/anchor.zip", metavar="ZIP", help="checkpoint to write")
+    p.add_argument("--init", default=None, metavar="ZIP",
+                   help="continue distilling this earlier output (skips the factorisation)")
     p.add_argument("--features-dim", type=int, default=128, metavar="R", help="encoder width (rank)")
     p.add_argument("--rounds", type=int, default=DistillConfig.rounds, metavar="N",
                    help="distillation rounds (0: the factorisation only)")
@@ -396,8 +409,13 @@ def _cmd_compress(args: Any) -> int:
                             learning_rate=args.learning_rate)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    report = compress_checkpoint(anchor, args.out, args.features_dim, cfg, scenarios, args.max_agents,
-                                 seed=args.seed)
+    if args.init is not None and not os.path.isfile(args.init):
+        raise UsageError(f"--init: no such checkpoint {args.init!r}")
+    try:
+        report = compress_checkpoint(anchor, args.out, args.features_dim, cfg, scenarios, args.max_agents,
+                                     seed=args.seed, init=args.init)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     report["command"] = "counterplay " + " ".join(sys.argv[1:])
     json_path = Path(str(Path(report["out"]).with_suffix("")) + ".json")
     json_path.parent.mkdir(parents=True, exist_ok=True)

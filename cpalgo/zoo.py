@@ -182,6 +182,11 @@ def register() -> None:
         algos = getattr(module, "ALGOS", None)
         if algos is not None:
             algos["counterplay"] = CounterPlay
+    # rl-zoo3 evaluates policy_kwargs strings in its exp_manager's globals: make the
+    # encoder of zoo/counterplay_fast.yml resolvable there, as load_recipe does
+    from cpalgo.encoders import LinearEncoder
+
+    rl_zoo3.exp_manager.LinearEncoder = LinearEncoder
     # schedule settings (learning_rate: cosine(3e-5), ...) read as load_recipe reads them
     from cpalgo.recipes import install_zoo_schedules
 

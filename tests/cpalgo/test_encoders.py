@@ -172,9 +172,35 @@ def test_compress_anchor_command_writes_an_encoder_checkpoint_and_report(tmp_pat
     assert loaded.policy.features_extractor.features_dim == 12
     report = json.loads((tmp_path / "fast" / "anchor.json").read_text())
     assert report["features_dim"] == 12 and len(report["rounds"]) == 1 and 0 < report["fit"]["relative_error"] < 1
+    # continue distilling the output: no new factorisation, the weights carried over
+    again = tmp_path / "again.zip"
+    assert main(["compress-anchor", "--anchor", str(anchor), "--out", str(again), "--features-dim", "12",
+                 "--rounds", "0", "--init", str(out), "--max-agents", "4", "--scenarios", "2"]) == 0
+    assert th.equal(RecurrentPPO.load(again, device="cpu").policy.features_extractor.linear.weight,
+                    loaded.policy.features_extractor.linear.weight)
+    assert json.loads((tmp_path / "again.json").read_text())["fit"] == {"init": str(out)}
+    with pytest.raises(SystemExit):
+        main(["compress-anchor", "--anchor", str(anchor), "--out", str(again), "--features-dim", "8",
+              "--init", str(out), "--max-agents", "4", "--scenarios", "2"])
+    assert "is not a 8-feature encoder network" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["compress-anchor", "--anchor", str(tmp_path / "missing.zip"), "--out", str(out)])
     assert "--anchor: no such checkpoint" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["compress-anchor", "--anchor", str(anchor), "--out", str(out), "--features-dim", "0"])
     assert "--features-dim: must be a positive integer" in capsys.readouterr().err
+
+
+def test_fast_recipe_names_the_encoder_for_load_recipe_and_rl_zoo3():
+    from cpalgo.recipes import load_recipe
+
+    kwargs = load_recipe("zoo/counterplay_fast.yml").algo_kwargs["policy_kwargs"]
+    assert kwargs["features_extractor_class"] is LinearEncoder
+    assert kwargs["features_extractor_kwargs"] == {"features_dim": 128}
+    pytest.importorskip("rl_zoo3")
+    import rl_zoo3.exp_manager
+
+    from cpalgo.zoo import register
+
+    register()
+    assert rl_zoo3.exp_manager.LinearEncoder is LinearEncoder
