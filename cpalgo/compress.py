@@ -366,6 +366,9 @@ def add_command(add: Callable[..., Any]) -> None:
     p.add_argument("--worlds", type=int, default=DistillConfig.num_worlds, metavar="W", help="worlds per round")
     p.add_argument("--epochs", type=int, default=DistillConfig.epochs, metavar="N", help="passes per round")
     p.add_argument("--learning-rate", type=float, default=DistillConfig.learning_rate, metavar="LR")
+    p.add_argument("--beta", type=float, default=DistillConfig.beta, metavar="P",
+                   help="probability that the anchor drives an agent in the first round (halved every round; "
+                        "0 when continuing with --init drives with the student only)")
     p.add_argument("--add-womd", default=None, metavar="DIR",
                    help="add the WOMD scenes of this folder to the procedural training pool")
     p.add_argument("--scenarios", type=int, default=192, metavar="N",
@@ -406,7 +409,7 @@ def _cmd_compress(args: Any) -> int:
             raise UsageError(f"--add-womd: {args.add_womd}: {exc}") from None
     try:
         cfg = DistillConfig(rounds=args.rounds, num_worlds=args.worlds, epochs=args.epochs,
-                            learning_rate=args.learning_rate)
+                            learning_rate=args.learning_rate, beta=args.beta)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     if args.init is not None and not os.path.isfile(args.init):
