@@ -9,8 +9,9 @@ map of ``features_dim`` outputs in front of both, so the projection becomes
 
 A trained flat network converts without retraining: :func:`factorize_input_layers` solves the
 reduced-rank regression of the stacked input weights on observations the policy actually sees
-(the best rank-``features_dim`` map for that data), so the converted policy computes nearly
-the same function; ``counterplay factorize`` wraps it for checkpoints.
+(the best rank-``features_dim`` map for that data), so the converted policy's input
+projections are close to the original's; ``counterplay compress-anchor`` (:mod:`cpalgo.compress`)
+wraps it for checkpoints and distills the rest of the difference away.
 
 Use it through ``policy_kwargs`` with any SB3 / sb3-contrib policy::
 
@@ -97,24 +98,49 @@ def factorize_input_layers(source: nn.Module, target: nn.Module, observations: n
         critic_weight: relative weight of the critic's rows in the fit, > 0.
     Returns:
         ``{"rank": r, "relative_error": ||XW^T - X E^T U^T||^2 / ||XW^T||^2, "actor_relative_error": ...}``
-        (unweighted, on the given observations).
+        (squared norms, unweighted, on the given observations; the input projections only,
+        not the recurrent term or the biases).
+    Raises:
+        ValueError: a target without a shared LinearEncoder, a rank above the stacked rows,
+        a source that is not flat or differs from the target elsewhere, bad observations.
     """
     encoder = getattr(target, "features_extractor", None)
     if not isinstance(encoder, LinearEncoder):
         raise ValueError("target: its policy_kwargs need features_extractor_class=LinearEncoder")
-    if critic_weight <= 0:
-        raise ValueError(f"critic_weight: must be > 0, got {critic_weight}")
+    if not getattr(target, "share_features_extractor", True):
+        raise ValueError("target: share_features_extractor=False is not supported (one encoder feeds the "
+                         "actor and the critic)")
+    if not (np.isfinite(critic_weight) and critic_weight > 0):
+        raise ValueError(f"critic_weight: must be a finite number > 0, got {critic_weight}")
     x = np.asarray(observations, dtype=np.float64)
     rank = encoder.features_dim
-    if x.ndim != 2 or x.shape[1] != encoder.linear.in_features:
-        raise ValueError(f"observations: expected (N, {encoder.linear.in_features}), got {x.shape}")
+    size = encoder.linear.in_features
+    if x.ndim != 2 or x.shape[1] != size:
+        raise ValueError(f"observations: expected (N, {size}), got {x.shape}")
     if x.shape[0] < rank:
         raise ValueError(f"observations: need at least {rank} rows (the rank), got {x.shape[0]}")
+    if not np.isfinite(x).all():
+        raise ValueError("observations: contain NaN or infinite values")
     src_rows = input_weight_rows(source)
     tgt_rows = input_weight_rows(target)
     if [n for n, _ in src_rows] != [n for n, _ in tgt_rows]:
         raise ValueError(f"source and target differ in their input layers: {[n for n, _ in src_rows]} "
                          f"vs {[n for n, _ in tgt_rows]}")
+    if any(w.shape[1] != size for _, w in src_rows):
+        raise ValueError(f"source: its input layers must read the {size}-wide observation directly (a flat "
+                         "features extractor)")
+    n_rows = sum(w.shape[0] for _, w in src_rows)
+    if rank > n_rows:
+        raise ValueError(f"target: features_dim {rank} exceeds the {n_rows} input rows it factorises")
+    src_state = source.state_dict()
+    replaced = {name for name, _ in tgt_rows} | {"features_extractor.linear.weight"}
+    for name, value in target.state_dict().items():
+        if name in replaced or name.startswith(("pi_features_extractor.", "vf_features_extractor.")):
+            continue
+        if name not in src_state or src_state[name].shape != value.shape:
+            got = None if name not in src_state else tuple(src_state[name].shape)
+            raise ValueError(f"source and target differ outside the input layers: {name} is {got} in the "
+                             f"source, {tuple(value.shape)} in the target")
     weights = [w.detach().double().cpu().numpy() for _, w in src_rows]
     scale = np.concatenate([np.full(w.shape[0], 1.0 if i == 0 else np.sqrt(critic_weight))
                             for i, w in enumerate(weights)])
@@ -126,15 +152,11 @@ def factorize_input_layers(source: nn.Module, target: nn.Module, observations: n
     encoder_weight = projector @ (stacked * scale[:, None])  # (r, D)
     new_rows = basis.T  # (R, r)  (stacked ~= new_rows @ encoder_weight)
 
-    src_state = source.state_dict()
-    tgt_state = target.state_dict()
-    replaced = {name for name, _ in tgt_rows} | {"features_extractor.linear.weight"}
     with th.no_grad():
-        for name, value in tgt_state.items():
+        for name, value in target.state_dict().items():
             if name in replaced or name.startswith(("pi_features_extractor.", "vf_features_extractor.")):
                 continue
-            if name in src_state and src_state[name].shape == value.shape:
-                value.copy_(src_state[name])
+            value.copy_(src_state[name])
         encoder.linear.weight.copy_(th.as_tensor(encoder_weight, dtype=encoder.linear.weight.dtype))
         start = 0
         for _, param in tgt_rows:

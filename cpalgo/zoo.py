@@ -186,7 +186,9 @@ def register() -> None:
     # encoder of zoo/counterplay_fast.yml resolvable there, as load_recipe does
     from cpalgo.encoders import LinearEncoder
 
+    # (and in its utils, where `-params policy_kwargs:"..."` overrides are evaluated)
     rl_zoo3.exp_manager.LinearEncoder = LinearEncoder
+    rl_zoo3.utils.LinearEncoder = LinearEncoder
     # schedule settings (learning_rate: cosine(3e-5), ...) read as load_recipe reads them
     from cpalgo.recipes import install_zoo_schedules
 

@@ -62,13 +62,17 @@ def test_linear_encoder_shapes_and_bad_arguments():
         LinearEncoder(gym.spaces.Discrete(3))
 
 
-def test_full_rank_factorisation_reproduces_the_flat_policy():
-    source = _model(FLAT).policy
-    # rank = all input rows (4 * 16 LSTM + 16 critic): the factorisation is exact
-    target = _model(encoder_policy_kwargs(FLAT, 80), seed=1).policy
+@pytest.mark.parametrize("critic_lstm", [False, True])
+def test_full_rank_factorisation_reproduces_the_flat_policy(critic_lstm):
+    flat = dict(FLAT, enable_critic_lstm=critic_lstm)
+    source = _model(flat).policy
+    # rank = all stacked input rows (4 * 16 actor LSTM + 16 critic layer, or + 4 * 16 critic
+    # LSTM): the factorisation is exact
+    rank = 128 if critic_lstm else 80
+    target = _model(encoder_policy_kwargs(flat, rank), seed=1).policy
     d = source.observation_space.shape[0]
     report = factorize_input_layers(source, target, _observations(400, d))
-    assert report["rank"] == 80 and report["relative_error"] < 1e-10
+    assert report["rank"] == rank and report["relative_error"] < 1e-10
     obs = th.as_tensor(_observations(6 * 5, d, seed=3)).reshape(6, 5, d)
     with th.no_grad():
         (l1, v1), (l2, v2) = _outputs(source, obs), _outputs(target, obs)
@@ -80,7 +84,8 @@ def test_low_rank_factorisation_is_the_best_fit_on_its_data():
     target = _model(encoder_policy_kwargs(FLAT, 24), seed=1).policy
     d = source.observation_space.shape[0]
     x = _observations(500, d)
-    report = factorize_input_layers(source, target, x)
+    # critic_weight 1: the fit minimises the plain (unweighted) error that is compared below
+    report = factorize_input_layers(source, target, x, critic_weight=1.0)
     assert 0 < report["relative_error"] < 1
     # any other rank-24 map does worse on the same data: a random one, and plain truncated
     # SVD of the weights (which ignores the data)
@@ -105,6 +110,20 @@ def test_factorisation_needs_an_encoder_target_and_enough_data():
         factorize_input_layers(source, target, _observations(10, d))
     with pytest.raises(ValueError, match="observations"):
         factorize_input_layers(source, target, _observations(100, d - 1))
+    with pytest.raises(ValueError, match="NaN"):
+        factorize_input_layers(source, target, np.full((100, d), np.nan, np.float32))
+    with pytest.raises(ValueError, match="critic_weight"):
+        factorize_input_layers(source, target, _observations(100, d), critic_weight=float("nan"))
+    # rank above the 80 stacked input rows
+    with pytest.raises(ValueError, match="exceeds the 80 input rows"):
+        factorize_input_layers(source, _model(encoder_policy_kwargs(FLAT, 96)).policy, _observations(200, d))
+    # a target that differs elsewhere (wider heads) is refused, not half-copied
+    wider = _model(encoder_policy_kwargs(dict(FLAT, net_arch=dict(pi=[32], vf=[16])), 24)).policy
+    with pytest.raises(ValueError, match="differ outside the input layers: mlp_extractor.policy_net"):
+        factorize_input_layers(source, wider, _observations(100, d))
+    split = _model(dict(encoder_policy_kwargs(FLAT, 24), share_features_extractor=False)).policy
+    with pytest.raises(ValueError, match="share_features_extractor=False"):
+        factorize_input_layers(source, split, _observations(100, d))
 
 
 def test_distill_config_rejects_unknown_and_bad_values():
@@ -114,6 +133,10 @@ def test_distill_config_rejects_unknown_and_bad_values():
         DistillConfig(beta=2.0)
     with pytest.raises(ValueError, match="rounds"):
         DistillConfig(rounds=-1)
+    with pytest.raises(ValueError, match="rounds: must be an integer"):
+        DistillConfig(rounds=1.5)
+    with pytest.raises(ValueError, match="value_coef"):
+        DistillConfig(value_coef=float("nan"))
     with pytest.raises(ValueError, match="num_worlds"):
         DistillConfig(num_worlds=0)
 
@@ -203,4 +226,4 @@ def test_fast_recipe_names_the_encoder_for_load_recipe_and_rl_zoo3():
     from cpalgo.zoo import register
 
     register()
-    assert rl_zoo3.exp_manager.LinearEncoder is LinearEncoder
+    assert rl_zoo3.exp_manager.LinearEncoder is LinearEncoder and rl_zoo3.utils.LinearEncoder is LinearEncoder
