@@ -29,6 +29,7 @@ import torch as th
 import torch.nn.functional as F
 
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
+from cpalgo.pretrain import _sequence_forward, train_on_episodes
 from cpsim.conditions import (
     FIELD_INDEX,
     PANEL,
@@ -197,8 +198,6 @@ def distill_losses(student: Any, obs: th.Tensor, log_probs: th.Tensor, values: t
         obs: (T, B, D) whole episodes from a zero memory; log_probs: (T, B, n_actions)
             teacher log-probabilities; values: (T, B); mask: (T, B) bool.
     """
-    from cpalgo.pretrain import _sequence_forward
-
     logits, student_values = _sequence_forward(student, obs)
     m = mask.float()
     n = m.sum().clamp(min=1.0)
@@ -256,29 +255,17 @@ def distill_policy(model: Any, teacher: Any, scenarios: Sequence[Any], config: D
         batch = collect_teacher_episodes(policy, teacher, sim, beta, rng, cfg)
         data = (data + [batch])[-cfg.keep_rounds:]
         policy.set_training_mode(True)
-        kl_sum = mse_sum = 0.0
-        for _ in range(cfg.epochs):
-            kl_sum = mse_sum = 0.0  # the round reports its last epoch
-            steps = 0
-            for b in data:
-                keep = th.nonzero(b.mask.any(0)).reshape(-1)
-                order = keep[th.randperm(keep.numel(), generator=gen)]
-                for lo in range(0, order.numel(), cfg.batch_sequences):
-                    idx = order[lo:lo + cfg.batch_sequences]
-                    dev = policy.device
-                    kl, mse = distill_losses(policy, b.obs[:, idx].to(dev), b.log_probs[:, idx].to(dev),
-                                             b.values[:, idx].to(dev), b.mask[:, idx].to(dev))
-                    loss = kl + cfg.value_coef * mse
-                    optimizer.zero_grad()
-                    loss.backward()
-                    th.nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm)
-                    optimizer.step()
-                    kl_sum += kl.item()
-                    mse_sum += mse.item()
-                    steps += 1
+
+        def losses(b: TeacherBatch, idx: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+            dev = policy.device
+            return distill_losses(policy, b.obs[:, idx].to(dev), b.log_probs[:, idx].to(dev),
+                                  b.values[:, idx].to(dev), b.mask[:, idx].to(dev))
+
+        kl_mean, mse_mean = train_on_episodes(policy, optimizer, data, losses, cfg.epochs, cfg.batch_sequences,
+                                              gen, cfg.value_coef, cfg.max_grad_norm)
         policy.set_training_mode(False)
         row = {"round": it, "beta": beta, "kl": batch.kl, "agreement": batch.agreement,
-               "kl_train": kl_sum / max(steps, 1), "value_mse": mse_sum / max(steps, 1),
+               "kl_train": kl_mean, "value_mse": mse_mean,
                "transitions": int(batch.mask.sum()), "seconds": time.perf_counter() - t0}
         history.append(row)
         if log is not None:

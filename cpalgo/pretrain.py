@@ -34,7 +34,8 @@ from cpsim.expert import EXPERTS
 #: Imitation teachers by name (cpsim.expert.make_expert).
 TEACHERS: tuple[str, ...] = EXPERTS
 
-__all__ = ["TEACHERS", "ImitationConfig", "EpisodeBatch", "collect_episodes", "imitation_losses", "imitate_expert"]
+__all__ = ["TEACHERS", "ImitationConfig", "EpisodeBatch", "collect_episodes", "imitation_losses",
+           "train_on_episodes", "imitate_expert"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -251,6 +252,43 @@ def imitation_losses(policy, obs: th.Tensor, labels: th.Tensor, mask: th.Tensor,
     return ce, mse
 
 
+def train_on_episodes(policy, optimizer: th.optim.Optimizer, data: Sequence[Any],
+                      losses: Callable[[Any, th.Tensor], tuple[th.Tensor, th.Tensor]], epochs: int,
+                      batch_sequences: int, generator: th.Generator, value_coef: float,
+                      max_grad_norm: float) -> tuple[float, float]:
+    """Minibatch passes over kept rounds of whole episodes (imitation and distillation).
+
+    Every epoch visits the rounds in order, each in a fresh random order of its agent slots
+    that hold at least one live step, ``batch_sequences`` slots per minibatch; the update
+    minimises ``main + value_coef * value`` with the gradient norm clipped.
+
+    Args:
+        data: rounds with a (T, N) bool ``mask``.
+        losses: ``losses(round, slot_indices) -> (main_loss, value_loss)``.
+    Returns:
+        the mean main and value losses over the last epoch's minibatches.
+    """
+    main_sum = value_sum = 0.0
+    steps = 0
+    for _ in range(epochs):
+        main_sum = value_sum = 0.0  # the caller reports the last epoch's training losses
+        steps = 0
+        for batch in data:
+            keep = th.nonzero(batch.mask.any(0)).reshape(-1)
+            order = keep[th.randperm(keep.numel(), generator=generator)]
+            for lo in range(0, order.numel(), batch_sequences):
+                main, value = losses(batch, order[lo:lo + batch_sequences])
+                loss = main + value_coef * value
+                optimizer.zero_grad()
+                loss.backward()
+                th.nn.utils.clip_grad_norm_(policy.parameters(), max_grad_norm)
+                optimizer.step()
+                main_sum += main.item()
+                value_sum += value.item()
+                steps += 1
+    return main_sum / max(steps, 1), value_sum / max(steps, 1)
+
+
 def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: ImitationConfig | None = None,
                    sim_config: Any = None, seed: int = 0,
                    log: Callable[[str], None] | None = print) -> list[dict[str, float]]:
@@ -311,30 +349,18 @@ def imitate_expert(model, scenarios: Sequence[Any] | None = None, config: Imitat
         data = data[-cfg.keep_rounds * cfg.episodes:]
         agreement = float(np.mean([b.agreement for b in new]))
         policy.set_training_mode(True)
-        for _ in range(cfg.epochs):
-            ce_sum = mse_sum = 0.0  # the round reports its last epoch's training losses
-            steps = 0
-            for batch in data:
-                keep = th.nonzero(batch.mask.any(0)).reshape(-1)
-                order = keep[th.randperm(keep.numel(), generator=gen)]
-                for lo in range(0, order.numel(), cfg.batch_sequences):
-                    idx = order[lo:lo + cfg.batch_sequences]
-                    vmask = None if batch.value_mask is None else batch.value_mask[:, idx].to(policy.device)
-                    ce, mse = imitation_losses(policy, batch.obs[:, idx].to(policy.device),
-                                               batch.labels[:, idx].to(policy.device),
-                                               batch.mask[:, idx].to(policy.device),
-                                               batch.returns[:, idx].to(policy.device), vmask)
-                    loss = ce + cfg.value_coef * mse
-                    optimizer.zero_grad()
-                    loss.backward()
-                    th.nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm)
-                    optimizer.step()
-                    ce_sum += ce.item()
-                    mse_sum += mse.item()
-                    steps += 1
+
+        def losses(batch: EpisodeBatch, idx: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+            dev = policy.device
+            vmask = None if batch.value_mask is None else batch.value_mask[:, idx].to(dev)
+            return imitation_losses(policy, batch.obs[:, idx].to(dev), batch.labels[:, idx].to(dev),
+                                    batch.mask[:, idx].to(dev), batch.returns[:, idx].to(dev), vmask)
+
+        ce_mean, mse_mean = train_on_episodes(policy, optimizer, data, losses, cfg.epochs, cfg.batch_sequences,
+                                              gen, cfg.value_coef, cfg.max_grad_norm)
         policy.set_training_mode(False)
-        row = {"round": it, "beta": beta, "agreement": agreement, "cross_entropy": ce_sum / max(steps, 1),
-               "value_mse": mse_sum / max(steps, 1),
+        row = {"round": it, "beta": beta, "agreement": agreement, "cross_entropy": ce_mean,
+               "value_mse": mse_mean,
                "transitions": int(sum(int(b.mask.sum()) for b in new)) // (1 + cfg.style_pairs),
                "seconds": time.perf_counter() - t0}
         history.append(row)
