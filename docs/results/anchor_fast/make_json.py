@@ -50,6 +50,10 @@ doc = {
 }
 if os.path.exists(f"{R}/womd/procedural_normal/summary.csv"):
     doc["evaluator_womd_valid"] = {"normal": block(f"{R}/womd/procedural_normal/summary.csv")}
+doc["outcomes_by_condition"] = {
+    "command": "counterplay outcomes --model zoo/anchor_fast.zip --condition C --tasks 256 --threads 1",
+    **{c: json.load(open(f"{R}/outcomes_{c}.json"))["outcomes"] for c in ("cautious", "normal", "aggressive")
+       if os.path.exists(f"{R}/outcomes_{c}.json")}}
 for f in ("bench_anchor_fast_16x8x64", "bench_anchor_fast_64x8x32", "bench_anchor_16x8x64", "bench_anchor_64x8x32"):
     if os.path.exists(f"{R}/{f}.json"):
         doc.setdefault("learn_benchmark", {})[f] = json.load(open(f"{R}/{f}.json"))
