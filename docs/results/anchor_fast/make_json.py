@@ -48,6 +48,13 @@ doc = {
         "evaluator": deploys(f"{R}/ev30")},
   },
 }
+if os.path.exists(f"{R}/r192.json"):
+    r192 = json.load(open(f"{R}/r192.json"))
+    doc["candidates"]["features_dim_192"] = {
+        "command": r192["command"], "wall_s": r192["wall_s"], "fit": r192["fit"],
+        "final_rollout_kl": r192["rounds"][-1]["kl"], "final_agreement": r192["rounds"][-1]["agreement"],
+        "evaluator": deploys(f"{R}/ev192"),
+        "learn_benchmark_64x8x32": json.load(open(f"{R}/bench_r192_64x8x32.json"))}
 if os.path.exists(f"{R}/womd/procedural_normal/summary.csv"):
     doc["evaluator_womd_valid"] = {"normal": block(f"{R}/womd/procedural_normal/summary.csv")}
 doc["outcomes_by_condition"] = {
