@@ -226,6 +226,18 @@ def cmd_pool(args: argparse.Namespace) -> int:
 
 
 # ----------------------------------------------------------------------------- anchor
+def load_womd_option(folder: str) -> list[Any]:
+    """The scenes of an ``--add-womd`` folder; a load failure is a ``UsageError`` naming it."""
+    from cpsim import scenario as scen_mod
+
+    if not os.path.isdir(folder):
+        raise UsageError(f"--add-womd: no such folder {folder!r}")
+    try:
+        return list(scen_mod.load_dir(folder)[0])
+    except Exception as exc:  # noqa: BLE001 - reported with the folder name
+        raise UsageError(f"--add-womd: {folder}: {exc}") from None
+
+
 def cmd_train_anchor(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
     from sb3_contrib import RecurrentPPO
@@ -235,16 +247,11 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     recipe = load_recipe(args.config)
     overrides = {}
     if args.add_womd:  # the recipe's procedural pool plus real scenes
-        from cpsim import scenario as scen_mod
         from cpsim.envs.selfplay import resolve_scenarios
 
         kw = recipe.env_kwargs
         pool = resolve_scenarios(family=kw.get("family"), num_scenarios=kw.get("num_scenarios"), seed=args.seed)
-        try:
-            real, _report = scen_mod.load_dir(args.add_womd)
-        except Exception as exc:  # noqa: BLE001 - reported with the folder name
-            raise UsageError(f"--add-womd: {args.add_womd}: {exc}") from None
-        overrides = {"scenarios": pool + list(real), "family": None, "num_scenarios": None}
+        overrides = {"scenarios": pool + load_womd_option(args.add_womd), "family": None, "num_scenarios": None}
     env = _make_env(recipe, args.seed, **overrides)
     steps = args.timesteps or recipe.n_timesteps
     if args.teacher_coef > 0:  # PPO with the teacher's actions as an auxiliary imitation term

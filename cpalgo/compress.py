@@ -30,15 +30,7 @@ import torch.nn.functional as F
 
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
 from cpalgo.pretrain import _sequence_forward, train_on_episodes
-from cpsim.conditions import (
-    FIELD_INDEX,
-    PANEL,
-    STYLE_MASK,
-    TASK_FIELDS,
-    criterion_task_fields,
-    profile,
-    sample_conditions,
-)
+from cpsim.conditions import PANEL, STYLE_MASK, profile, sample_conditions, with_eval_task
 from cpsim.config import Controller
 
 __all__ = ["DistillConfig", "TeacherBatch", "collect_teacher_episodes", "distill_losses", "distill_policy"]
@@ -134,11 +126,8 @@ def _draw_conditions(rng: np.random.Generator, shape: tuple[int, int], panel_sha
     conds = sample_conditions(rng, shape)
     styles = np.stack([profile(name) for name in PANEL])[rng.integers(0, len(PANEL), size=shape)]
     use_panel = (rng.random(shape) < panel_share)[..., None] & STYLE_MASK
-    conds = np.where(use_panel, styles, conds)
-    task_idx = [FIELD_INDEX[f] for f in TASK_FIELDS]
-    use_eval = rng.random(shape) < eval_task_share
-    conds[..., task_idx] = np.where(use_eval[..., None], criterion_task_fields(), conds[..., task_idx])
-    return conds.astype(np.float32)
+    conds = np.where(use_panel, styles, conds).astype(np.float32)
+    return with_eval_task(rng, conds, eval_task_share)
 
 
 @th.no_grad()
@@ -384,7 +373,7 @@ def _cmd_compress(args: Any) -> int:
     import sys
     from pathlib import Path
 
-    from cpalgo.cli import UsageError, _set_threads
+    from cpalgo.cli import UsageError, _set_threads, load_womd_option
     from cpalgo.evaluate.tables import write_text_atomic
     from cpalgo.recipes import resolve_path
     from cpsim.envs.selfplay import resolve_scenarios
@@ -400,14 +389,7 @@ def _cmd_compress(args: Any) -> int:
             raise UsageError(f"--{name.replace('_', '-')}: must be a positive integer, got {getattr(args, name)}")
     scenarios = resolve_scenarios(num_scenarios=args.scenarios, seed=args.seed)
     if args.add_womd:
-        from cpsim import scenario as scen_mod
-
-        if not os.path.isdir(args.add_womd):
-            raise UsageError(f"--add-womd: no such folder {args.add_womd!r}")
-        try:
-            scenarios = scenarios + list(scen_mod.load_dir(args.add_womd)[0])
-        except Exception as exc:  # noqa: BLE001 - reported with the folder name
-            raise UsageError(f"--add-womd: {args.add_womd}: {exc}") from None
+        scenarios = scenarios + load_womd_option(args.add_womd)
     try:
         cfg = DistillConfig(rounds=args.rounds, num_worlds=args.worlds, epochs=args.epochs,
                             learning_rate=args.learning_rate, beta=args.beta)

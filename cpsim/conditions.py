@@ -134,6 +134,20 @@ def criterion_task_fields() -> np.ndarray:
     return np.clip(raw, TRAIN_LOW[idx], TRAIN_HIGH[idx]).astype(np.float32)
 
 
+def with_eval_task(rng: np.random.Generator, conditions: np.ndarray, share: float) -> np.ndarray:
+    """Give a random ``share`` of the agents the evaluation criterion's task fields, in place.
+
+    Args:
+        conditions: (..., 10) raw conditions, modified in place and returned.
+        share: probability per agent, in [0, 1]; one ``rng.random(conditions.shape[:-1])``
+            draw decides.
+    """
+    idx = [FIELD_INDEX[f] for f in TASK_FIELDS]
+    pick = rng.random(conditions.shape[:-1]) < share
+    conditions[..., idx] = np.where(pick[..., None], criterion_task_fields(), conditions[..., idx])
+    return conditions
+
+
 def deployment_condition(spec: str | Sequence[float] | np.ndarray, argument: str = "condition") -> np.ndarray:
     """The raw (10,) condition of a deployed agent: the style fields of ``spec`` (a profile
     name or a raw 10-vector) and the task fields of the evaluation goal criterion

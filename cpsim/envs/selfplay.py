@@ -12,19 +12,11 @@ from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from cpsim.arrays import to_numpy as _np
-from cpsim.conditions import (
-    FIELD_INDEX,
-    NUM_CONDITION_FIELDS,
-    TASK_FIELDS,
-    criterion_task_fields,
-    resolve_condition,
-    sample_conditions,
-)
+from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions, with_eval_task
 from cpsim.scoring import episode_scores
 
 OUTCOME_NAMES: tuple[str, ...] = ("running", "goal", "collision", "offroad", "timeout")
 CONDITION_MODES = ("train",)
-_TASK_INDEX = [FIELD_INDEX[f] for f in TASK_FIELDS]
 #: procedural scenarios generated when no scenarios are given (``num_scenarios`` overrides)
 DEFAULT_POOL_SIZE = 16
 #: episode metrics in the info of an agent's last step (:func:`cpsim.scoring.episode_scores`)
@@ -240,8 +232,7 @@ class SelfPlayVecEnv(VecEnv):
         if self.fixed_condition is None:
             cond = sample_conditions(self._rng, (k, self.max_agents))
             if self.eval_task_share > 0.0:
-                pick = self._rng.random((k, self.max_agents)) < self.eval_task_share
-                cond[..., _TASK_INDEX] = np.where(pick[..., None], criterion_task_fields(), cond[..., _TASK_INDEX])
+                with_eval_task(self._rng, cond, self.eval_task_share)
         else:
             cond = np.broadcast_to(self.fixed_condition, (k, self.max_agents, NUM_CONDITION_FIELDS)).copy()
         self.sim.reset(worlds=worlds, scenario_index=scenario_index, conditions=cond)
