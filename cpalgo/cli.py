@@ -240,7 +240,6 @@ def load_womd_option(folder: str) -> list[Any]:
 
 def cmd_train_anchor(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
-    from sb3_contrib import RecurrentPPO
 
     from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
 
@@ -260,9 +259,11 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         model = TeacherPPO(recipe.policy, env, teacher=args.teacher, teacher_coef=args.teacher_coef,
                            teacher_coef_final=args.teacher_coef_final, seed=args.seed, verbose=args.verbose,
                            tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
-    else:
-        model = RecurrentPPO(recipe.policy, env, seed=args.seed, verbose=args.verbose,
-                             tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
+    else:  # plain PPO on the fast learner (fused LSTM, live slots only); shipped as RecurrentPPO below
+        from cpalgo.counterplay.algorithm import CounterPlay
+
+        model = CounterPlay(recipe.policy, env, counterfactual=False, seed=args.seed, verbose=args.verbose,
+                            tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
     if args.init:  # continue from an earlier anchor (same recipe network)
         try:
             model.set_parameters(args.init, exact_match=True)
@@ -287,10 +288,10 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     if steps:
         model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0
-    if args.teacher_coef > 0:  # ship a plain RecurrentPPO with the same weights
-        from cpalgo.teacher_ppo import export_recurrent_ppo
+    from cpalgo.teacher_ppo import export_recurrent_ppo
 
-        model = export_recurrent_ppo(model, recipe.policy, env, seed=args.seed, **recipe.algo_kwargs)
+    # ship a plain sb3-contrib RecurrentPPO with the same weights and Adam state
+    model = export_recurrent_ppo(model, recipe.policy, env, seed=args.seed, **recipe.algo_kwargs)
     if args.drop_optimizer_state:  # Adam's moments double the file; a later run restarts them
         policy = model.policy
         policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
@@ -610,7 +611,7 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
     ta.add_argument("--teacher-coef", type=_non_negative_float, default=0.0, metavar="C",
                     help="PPO with the --teacher's actions as an auxiliary imitation term of weight C "
-                         "(cpalgo.teacher_ppo.TeacherPPO; 0: plain RecurrentPPO)")
+                         "(cpalgo.teacher_ppo.TeacherPPO; 0: plain PPO)")
     ta.add_argument("--teacher-coef-final", type=_non_negative_float, default=None, metavar="C",
                     help="the imitation weight at the end of PPO (linear from --teacher-coef; default: constant)")
     ta.add_argument("--drop-optimizer-state", action="store_true",

@@ -136,5 +136,7 @@ def export_recurrent_ppo(model: Any, recipe_policy: str, env: Any, **algo_kwargs
 
     out = RecurrentPPO(recipe_policy, env, **algo_kwargs)
     out.policy.load_state_dict(model.policy.state_dict(), strict=True)
+    # same parameters in the same order, so Adam's moments carry over and a continued run resumes them
+    out.policy.optimizer.load_state_dict(model.policy.optimizer.state_dict())
     out.num_timesteps = int(model.num_timesteps)
     return out

@@ -187,7 +187,9 @@ def test_train_anchor_with_the_teachers_imitation_term_ships_a_plain_recurrent_p
     assert cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--teacher", "reactive",
                      "--teacher-coef", "0.5", "--teacher-coef-final", "0.1", "--timesteps", "300",
                      "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
-    assert type(RecurrentPPO.load(out, device="cpu")) is RecurrentPPO
+    shipped = RecurrentPPO.load(out, device="cpu")
+    assert type(shipped) is RecurrentPPO
+    assert shipped.policy.optimizer.state_dict()["state"]  # Adam's moments travel with the export
     assert json.loads((tmp_path / "teacher.json").read_text())["timesteps"] >= 300
     with pytest.raises(SystemExit):
         cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--teacher-coef", "-1"])
