@@ -1,7 +1,8 @@
 """Long PPO-Continue from the compressed anchor (issue 12: 'longer PPO with the faster trainer').
 
 Chunks of CHUNK live transitions; a snapshot (plain RecurrentPPO) after each; resumes from the last.
-    python -u docs/results/long_ppo/long_ppo.py OUT CHUNK TOTAL EVAL_TASK_SHARE   (env: THREADS, LR, INIT)
+    python -u docs/results/long_ppo/long_ppo.py OUT CHUNK TOTAL EVAL_TASK_SHARE
+    (env: THREADS, LR, INIT, N_STEPS (32), BATCH (2048), WOMD (1: add the 40 WOMD training scenes))
     python -u docs/results/long_ppo/long_ppo.py runs/long_ppo/share05 3e6 4.5e7 0.5
     docs/results/long_ppo/watch.sh runs/long_ppo/share05 2     # evaluates every 2nd snapshot
 """
@@ -28,12 +29,15 @@ def main() -> None:
     torch.set_num_threads(int(os.environ.get("THREADS", "2")))
     os.makedirs(out_dir, exist_ok=True)
     seed = 11
-    pool = resolve_scenarios(family=None, num_scenarios=192, seed=seed) + load_womd_option("../shared/data/womd/train")
+    pool = resolve_scenarios(family=None, num_scenarios=192, seed=seed)
+    if os.environ.get("WOMD", "1") == "1":
+        pool += load_womd_option("../shared/data/womd/train")
     env = VecMonitor(cpsim.SelfPlayVecEnv(num_worlds=64, max_agents=8, scenarios=pool, dynamics="jerk",
                                           condition="train", eval_task_share=share, seed=seed))
     net = dict(lstm_hidden_size=128, enable_critic_lstm=False, net_arch=dict(pi=[128, 128], vf=[128, 128]),
                features_extractor_class=LinearEncoder, features_extractor_kwargs=dict(features_dim=128))
-    kw = dict(n_steps=32, batch_size=2048, n_epochs=3, learning_rate=float(os.environ.get("LR", "1e-4")),
+    kw = dict(n_steps=int(os.environ.get("N_STEPS", "32")), batch_size=int(os.environ.get("BATCH", "2048")),
+              n_epochs=3, learning_rate=float(os.environ.get("LR", "1e-4")),
               gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5,
               policy_kwargs=net)
     model = CounterPlay("MlpLstmPolicy", env, counterfactual=False, seed=seed, **kw)
