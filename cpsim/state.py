@@ -22,7 +22,7 @@ from cpsim.conditions import NUM_CONDITION_FIELDS
 #: Reward terms, in the order of the last axis of ``reward_raw`` / ``reward_w``.
 REWARD_TERMS: tuple[str, ...] = (
     "goal", "collision", "offroad", "comfort", "lane_align", "lane_center", "vel_align",
-    "reverse", "step",
+    "reverse", "step", "progress",
 )
 NUM_REWARD_TERMS = len(REWARD_TERMS)
 #: Positions kept per agent for the at-fault lane-divider rule (its last 4 positions).

@@ -37,7 +37,7 @@ from stable_baselines3.common.utils import explained_variance
 
 from cpalgo.policies import sequence_lengths
 
-__all__ = ["ScheduledTerms", "UpdateLog", "begin_update", "run_update", "spread_schedule"]
+__all__ = ["ScheduledTerms", "UpdateLog", "begin_update", "run_update", "normalize_advantages", "spread_schedule"]
 
 #: ``(rollout_data, mask, logits) -> {name: scalar term}``: see :func:`run_update`.
 MinibatchTerms = Callable[[Any, th.Tensor, th.Tensor], dict[str, th.Tensor]]
@@ -151,7 +151,7 @@ def _ppo_loss(model: Any, rollout_data: Any, actions: th.Tensor, mask: th.Tensor
     values = values.flatten()
     advantages = rollout_data.advantages
     if model.normalize_advantage:
-        advantages = (advantages - advantages[mask].mean()) / (advantages[mask].std() + 1e-8)
+        advantages = normalize_advantages(advantages, mask)
 
     # ratio between old and new policy, should be one at the first iteration
     ratio = th.exp(log_prob - rollout_data.old_log_prob)
@@ -184,6 +184,16 @@ def _ppo_loss(model: Any, rollout_data: Any, actions: th.Tensor, mask: th.Tensor
     log.entropy_losses.append(entropy_loss.item())
 
     return policy_loss + model.ent_coef * entropy_loss + model.vf_coef * value_loss, log_prob
+
+
+def normalize_advantages(advantages: th.Tensor, mask: th.Tensor) -> th.Tensor:
+    """Advantages centred and scaled by their mean and std over ``mask`` (both (n,)), as
+    sb3-contrib does; left as they are when fewer than two transitions are masked in, where
+    the std is undefined (a minibatch of one live transition made every logit NaN)."""
+    live = advantages[mask]
+    if live.numel() < 2:
+        return advantages
+    return (advantages - live.mean()) / (live.std() + 1e-8)
 
 
 def run_update(model: Any, clip_range: float, clip_range_vf: float | None, *, masked: bool,

@@ -19,12 +19,20 @@ lane_center -min(|o - target|, lane_radius) with a lane      + c.lane_center raw
 vel_align   -|v| (1 - cos e) / 20 with a lane near, else 0   + c.vel_align raw
 reverse     max(-v, 0)                                       - c.reverse raw
 step        1                                                - step_penalty raw
+progress    metres the agent got closer to its goal this     + progress_coef x aggression raw
+            step (task agents; 0 otherwise)                  (aggression = clip(1 - c.collision
+                                                             / 3, 0, 1); progress_coef of
+                                                             SimConfig, default 0)
 =========== ================================================ ===================================
 
 The reward is the sum of the weighted terms. Agents not present in the step get 0 for all.
-Every per-step term is a penalty (<= 0) and only reaching the goal pays: agents leave the
-episode at their goal, so a positive per-step term (e.g. alignment as ``+cos e``) would pay
-them for staying on the road instead of finishing, and self-play would learn to wait.
+Every per-step term but progress is a penalty (<= 0) and only reaching the goal pays: agents
+leave the episode at their goal, so a positive per-step term (e.g. alignment as ``+cos e``)
+would pay them for staying on the road instead of finishing, and self-play would learn to
+wait. Progress pays only for getting closer to the goal (moving away costs the same), so it
+cannot be farmed by staying; it is off by default and, when on, scaled by the condition's
+collision weight, so that bold styles are paid every step for going and normal and cautious
+(collision weight 3) are not.
 """
 
 from __future__ import annotations
@@ -45,6 +53,20 @@ WP_COMFORT_A_LAT = wp.constant(COMFORT_A_LAT)
 WP_COMFORT_JERK = wp.constant(COMFORT_JERK)
 #: Speed scale of the velocity-alignment term (m/s).
 VEL_ALIGN_SCALE = 20.0
+#: Collision weight at which the progress term's aggression factor reaches 0 (p_train's top).
+PROGRESS_COLLISION_SCALE = 3.0
+WP_PROGRESS_COLLISION_SCALE = wp.constant(PROGRESS_COLLISION_SCALE)
+
+
+@wp.func
+def aggression(collision_weight: float) -> float:
+    """Style factor of the progress term: clip(1 - collision_weight / 3, 0, 1)."""
+    return wp.clamp(1.0 - collision_weight / WP_PROGRESS_COLLISION_SCALE, 0.0, 1.0)
+
+
+def aggression_np(collision_weight) -> np.ndarray:
+    """Reference of :func:`aggression` over arrays (float64)."""
+    return np.clip(1.0 - np.asarray(collision_weight, np.float64) / PROGRESS_COLLISION_SCALE, 0.0, 1.0)
 
 
 @wp.func
@@ -72,7 +94,7 @@ def write_reward(conds: wp.array3d(dtype=wp.float32), raw: wp.array3d(dtype=wp.f
                  weighted: wp.array3d(dtype=wp.float32), w: int, a: int,
                  goal_now: bool, collided: bool, offroad: bool, violations: int, has_lane: bool,
                  err: float, offset: float, speed: float, lane_radius: float, lane_width: float,
-                 step_penalty: float) -> float:
+                 step_penalty: float, progress: float, progress_coef: float) -> float:
     """Compute every term into raw[w, a, :] and weighted[w, a, :]; returns the reward."""
     r_goal = float(0.0)
     if goal_now:
@@ -103,6 +125,7 @@ def write_reward(conds: wp.array3d(dtype=wp.float32), raw: wp.array3d(dtype=wp.f
     raw[w, a, 6] = r_vel
     raw[w, a, 7] = r_rev
     raw[w, a, 8] = 1.0
+    raw[w, a, 9] = progress
     w_goal = r_goal
     w_col = -(conds[w, a, 2] + 0.1 * wp.abs(speed)) * r_col
     w_off = -conds[w, a, 3] * r_off
@@ -112,6 +135,7 @@ def write_reward(conds: wp.array3d(dtype=wp.float32), raw: wp.array3d(dtype=wp.f
     w_vel = conds[w, a, 6] * r_vel
     w_rev = -conds[w, a, 9] * r_rev
     w_step = -step_penalty
+    w_progress = progress_coef * aggression(conds[w, a, 2]) * progress
     weighted[w, a, 0] = w_goal
     weighted[w, a, 1] = w_col
     weighted[w, a, 2] = w_off
@@ -121,13 +145,15 @@ def write_reward(conds: wp.array3d(dtype=wp.float32), raw: wp.array3d(dtype=wp.f
     weighted[w, a, 6] = w_vel
     weighted[w, a, 7] = w_rev
     weighted[w, a, 8] = w_step
-    return w_goal + w_col + w_off + w_comfort + w_align + w_center + w_vel + w_rev + w_step
+    weighted[w, a, 9] = w_progress
+    return w_goal + w_col + w_off + w_comfort + w_align + w_center + w_vel + w_rev + w_step + w_progress
 
 
 def reward_terms_np(condition: np.ndarray, *, goal_now: bool, collided: bool, offroad: bool,
                     violations: int, has_lane: bool, err: float, offset: float, speed: float,
                     lane_radius: float = 4.0, lane_width: float = 3.7,
-                    step_penalty: float = 1e-4) -> tuple[dict[str, float], dict[str, float], float]:
+                    step_penalty: float = 1e-4, progress: float = 0.0,
+                    progress_coef: float = 0.0) -> tuple[dict[str, float], dict[str, float], float]:
     """Reference of :func:`write_reward` for one agent: (raw, weighted, reward)."""
     c = np.asarray(condition, np.float64)
     raw = dict.fromkeys(REWARD_TERMS, 0.0)
@@ -143,6 +169,7 @@ def reward_terms_np(condition: np.ndarray, *, goal_now: bool, collided: bool, of
         raw["vel_align"] = -abs(speed) * (1 - np.cos(err)) / VEL_ALIGN_SCALE
     raw["reverse"] = max(-speed, 0.0)
     raw["step"] = 1.0
+    raw["progress"] = float(progress)
     wt = {
         "goal": raw["goal"],
         "collision": -(c[C_COLLISION] + 0.1 * abs(speed)) * raw["collision"],
@@ -153,9 +180,10 @@ def reward_terms_np(condition: np.ndarray, *, goal_now: bool, collided: bool, of
         "vel_align": c[C_VEL_ALIGN] * raw["vel_align"],
         "reverse": -c[C_REVERSE] * raw["reverse"],
         "step": -step_penalty,
+        "progress": progress_coef * float(aggression_np(c[C_COLLISION])) * raw["progress"],
     }
     return raw, wt, float(sum(wt.values()))
 
 
-assert NUM_REWARD_TERMS == 9
-__all__ = ["write_reward", "comfort_violations", "comfort_violations_np", "reward_terms_np", "REWARD_TERMS"]
+assert NUM_REWARD_TERMS == 10
+__all__ = ["write_reward", "aggression", "aggression_np", "comfort_violations", "comfort_violations_np", "reward_terms_np", "REWARD_TERMS"]

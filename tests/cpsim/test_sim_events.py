@@ -156,7 +156,7 @@ def test_reward_terms_match_reference():
                         agent(60.0, 30.0, speed=4.0, goal=(120.0, 30.0))])  # off the lanes
     rng = np.random.default_rng(0)
     sim = cpsim.Simulator([sc], num_worlds=3, max_agents=3, seed=0,
-                          config={"on_offroad": "ignore", "dynamics": "jerk"})
+                          config={"on_offroad": "ignore", "dynamics": "jerk", "progress_coef": 0.05})
     conds = cpsim.sample_conditions(rng, (3, 3))
     conds[..., 0] = 2.0  # no goal events
     sim.reset(conditions=conds)
@@ -171,7 +171,10 @@ def test_reward_terms_match_reference():
                           violations=int(comfort_violations_np(st["accel"][w, a], st["lat_accel"][w, a],
                                                                st["jerk"][w, a], st["lat_jerk"][w, a])),
                           has_lane=bool(st["has_lane"][w, a]), err=float(st["lane_err"][w, a]),
-                          offset=float(st["lane_offset"][w, a]), speed=float(st["speed"][w, a]))
+                          offset=float(st["lane_offset"][w, a]), speed=float(st["speed"][w, a]),
+                          progress=float(np.linalg.norm(st["prev_pos"][w, a] - st["goal"][w, a])
+                                         - np.linalg.norm(st["pos"][w, a] - st["goal"][w, a])),
+                          progress_coef=0.05)
                 raw, wtd, total = reward_terms_np(conds[w, a], **kw)
                 got_raw = [sim.reward_terms[f"raw_{k}"][w, a].item() for k in REWARD_TERMS]
                 got_w = [sim.reward_terms[f"w_{k}"][w, a].item() for k in REWARD_TERMS]
@@ -182,6 +185,32 @@ def test_reward_terms_match_reference():
     assert sim.reward_terms["raw_lane_center"][0, 2].item() == pytest.approx(-4.0)
     assert sim.reward_terms["raw_lane_align"][0, 2].item() == pytest.approx(-1.0)
     assert (sim.reward_terms["raw_reverse"][:, 1] >= 0).all()
+
+
+def test_progress_term_pays_bold_styles_for_closing_on_the_goal():
+    """The progress term pays metres gained towards the goal, scaled by the aggression of the
+    collision weight: the aggressive profile earns it, normal and cautious (weight 3) do not,
+    and with the default progress_coef 0 nobody does."""
+    sc = make_scenario([agent(0.0, 0.0, speed=10.0, goal=(120.0, 0.0))])
+    profiles = np.stack([cpsim.PROFILES[k] for k in ("aggressive", "normal-aggressive", "normal", "cautious")])
+    for coef in (0.0, 0.02):
+        sim = cpsim.Simulator([sc], num_worlds=4, max_agents=1, seed=0,
+                              config={"dynamics": "jerk", "progress_coef": coef})
+        sim.reset(conditions=profiles[:, None, :])
+        sim.step(np.full((4, 1), KEEP_JERK))
+        gained = sim.reward_terms["raw_progress"][:, 0].numpy()
+        np.testing.assert_allclose(gained, 1.0, atol=0.05)  # 10 m/s for 0.1 s straight at the goal
+        weighted = sim.reward_terms["w_progress"][:, 0].numpy()
+        aggression = np.array([1 - 0.2 / 3, 1 - 1.6 / 3, 0.0, 0.0])
+        np.testing.assert_allclose(weighted, coef * aggression * gained, rtol=1e-5, atol=1e-8)
+    assert weighted[0] > weighted[1] > 0 and weighted[2] == weighted[3] == 0
+    # driving away from the goal costs what coming closer pays
+    _, wtd, _ = reward_terms_np(profiles[0], goal_now=False, collided=False, offroad=False, violations=0,
+                                has_lane=False, err=0.0, offset=0.0, speed=-5.0, progress=-0.5,
+                                progress_coef=0.02)
+    assert wtd["progress"] == pytest.approx(-0.02 * (1 - 0.2 / 3) * 0.5)
+    with pytest.raises(ValueError, match="progress_coef"):
+        cpsim.SimConfig(progress_coef=-1.0)
 
 
 def test_comfort_counts_longitudinal_or_lateral_jerk():
