@@ -31,7 +31,8 @@ import torch as th
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-__all__ = ["LinearEncoder", "encoder_policy_kwargs", "factorize_input_layers", "input_weight_rows"]
+__all__ = ["ConditionResidual", "LinearEncoder", "add_condition_branch", "encoder_policy_kwargs",
+           "factorize_input_layers", "input_weight_rows"]
 
 
 class LinearEncoder(BaseFeaturesExtractor):
@@ -58,6 +59,77 @@ class LinearEncoder(BaseFeaturesExtractor):
 
     def forward(self, observations: th.Tensor) -> th.Tensor:
         return self.linear(observations)
+
+
+class ConditionResidual(BaseFeaturesExtractor):
+    """The observation plus a learned function of its condition slice, added everywhere:
+    ``features = obs + W2 tanh(LayerNorm(W1 cond))``.
+
+    BehaviorBench gives the reward condition an encoder branch of its own (Linear, LayerNorm,
+    Linear, width 64) instead of 10 of ~700 flat inputs. A trained flat policy converts with
+    the branch's output layer at zero (:func:`add_condition_branch`), so it computes what it
+    did, and PPO can then grow how much the style moves the features. (In a fresh SB3 policy
+    ``ortho_init`` re-initialises that layer like every other.)
+
+    Args:
+        observation_space: flat Box of D values.
+        condition_start: index of the first condition value in the observation
+            (:class:`cpsim.observation.ObsLayout` ``.condition.start``: 17).
+        condition_size: number of condition values (10).
+        hidden: width of the branch.
+    Shapes:
+        forward: (B, D) float -> (B, D).
+    """
+
+    def __init__(self, observation_space: gym.Space, condition_start: int = 17, condition_size: int = 10,
+                 hidden: int = 64) -> None:
+        if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
+            raise ValueError(f"observation_space: ConditionResidual needs a flat Box, got {observation_space}")
+        size = int(observation_space.shape[0])
+        if not (0 <= int(condition_start) and int(condition_size) > 0
+                and int(condition_start) + int(condition_size) <= size):
+            raise ValueError(f"condition_start, condition_size: the slice [{condition_start}, "
+                             f"{int(condition_start) + int(condition_size)}) must lie in the observation "
+                             f"of {size} values")
+        if int(hidden) <= 0:
+            raise ValueError(f"hidden: must be a positive width, got {hidden}")
+        super().__init__(observation_space, size)
+        self.condition = slice(int(condition_start), int(condition_start) + int(condition_size))
+        self.branch = nn.Sequential(nn.Linear(int(condition_size), int(hidden)), nn.LayerNorm(int(hidden)),
+                                    nn.Tanh(), nn.Linear(int(hidden), size))
+        nn.init.zeros_(self.branch[-1].weight)
+        nn.init.zeros_(self.branch[-1].bias)
+
+    def forward(self, observations: th.Tensor) -> th.Tensor:
+        return observations + self.branch(observations[..., self.condition])
+
+
+def add_condition_branch(source: nn.Module, target: nn.Module) -> list[str]:
+    """Copy a flat recurrent policy into one whose features extractor is a
+    :class:`ConditionResidual`, in place: every parameter of ``source`` goes to the same name
+    in ``target``; the branch keeps its init (output layer zero), so both compute the same.
+
+    Returns:
+        The names of the target's parameters that were not copied (the branch's).
+    Raises:
+        ValueError: a target without a ConditionResidual, or a source parameter the target
+        lacks or holds in another shape.
+    """
+    if not isinstance(getattr(target, "features_extractor", None), ConditionResidual):
+        raise ValueError("target: its policy_kwargs need features_extractor_class=ConditionResidual")
+    src = source.state_dict()
+    dst = target.state_dict()
+    for name, value in src.items():
+        if name not in dst or dst[name].shape != value.shape:
+            got = None if name not in dst else tuple(dst[name].shape)
+            raise ValueError(f"source: parameter {name} {tuple(value.shape)} has no match in the target ({got})")
+    target.load_state_dict(src, strict=False)
+    # SB3's ortho_init re-initialises every features-extractor layer after construction
+    out_layer = target.features_extractor.branch[-1]
+    with th.no_grad():
+        out_layer.weight.zero_()
+        out_layer.bias.zero_()
+    return sorted(set(dst) - set(src))
 
 
 def encoder_policy_kwargs(policy_kwargs: dict[str, Any] | None, features_dim: int) -> dict[str, Any]:

@@ -13,7 +13,8 @@ import torch as th
 import cpsim
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
 from cpalgo.compress import DistillConfig, collect_teacher_episodes, distill_losses, distill_policy
-from cpalgo.encoders import LinearEncoder, encoder_policy_kwargs, factorize_input_layers
+from cpalgo.encoders import (ConditionResidual, LinearEncoder, add_condition_branch, encoder_policy_kwargs,
+                             factorize_input_layers)
 
 FLAT = dict(lstm_hidden_size=16, enable_critic_lstm=False, net_arch=dict(pi=[16], vf=[16]))
 
@@ -227,3 +228,36 @@ def test_fast_recipe_names_the_encoder_for_load_recipe_and_rl_zoo3():
 
     register()
     assert rl_zoo3.exp_manager.LinearEncoder is LinearEncoder and rl_zoo3.utils.LinearEncoder is LinearEncoder
+
+
+def test_condition_residual_adds_a_function_of_the_condition_slice_only():
+    space = gym.spaces.Box(-1, 1, (30,), np.float32)
+    enc = ConditionResidual(space, condition_start=5, condition_size=4, hidden=8)
+    th.nn.init.normal_(enc.branch[-1].weight)  # a trained branch
+    x = th.as_tensor(_observations(6, 30))
+    y = enc(x)
+    assert y.shape == (6, 30) and not th.allclose(y, x)
+    x2 = x.clone()
+    x2[:, 10:] += 0.5  # outside the condition slice: passes straight through
+    assert th.allclose(enc(x2) - x2, y - x)
+    x3 = x.clone()
+    x3[:, 5:9] = -x3[:, 5:9]  # the condition changes: the added term changes
+    assert not th.allclose(enc(x3) - x3, y - x)
+    with pytest.raises(ValueError, match="condition_start"):
+        ConditionResidual(space, condition_start=28, condition_size=4)
+    with pytest.raises(ValueError, match="hidden"):
+        ConditionResidual(space, hidden=0)
+
+
+def test_add_condition_branch_keeps_a_flat_policy_function():
+    source = _model(FLAT).policy
+    d = source.observation_space.shape[0]
+    target = _model(dict(FLAT, features_extractor_class=ConditionResidual,
+                         features_extractor_kwargs=dict(condition_start=17, condition_size=10)), seed=1).policy
+    missing = add_condition_branch(source, target)
+    assert missing and all(".branch." in k for k in missing)
+    obs = th.as_tensor(_observations(5 * 3, d, seed=2)).reshape(5, 3, d)
+    for got, want in zip(_outputs(target, obs), _outputs(source, obs)):
+        assert th.allclose(got, want, atol=1e-6)
+    with pytest.raises(ValueError, match="ConditionResidual"):
+        add_condition_branch(source, _model(FLAT).policy)
