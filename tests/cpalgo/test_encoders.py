@@ -13,8 +13,13 @@ import torch as th
 import cpsim
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
 from cpalgo.compress import DistillConfig, collect_teacher_episodes, distill_losses, distill_policy
-from cpalgo.encoders import (ConditionResidual, LinearEncoder, add_condition_branch, encoder_policy_kwargs,
-                             factorize_input_layers)
+from cpalgo.encoders import (
+    ConditionResidual,
+    LinearEncoder,
+    add_condition_branch,
+    encoder_policy_kwargs,
+    factorize_input_layers,
+)
 
 FLAT = dict(lstm_hidden_size=16, enable_critic_lstm=False, net_arch=dict(pi=[16], vf=[16]))
 
