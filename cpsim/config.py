@@ -122,7 +122,8 @@ class SimConfig:
             deployment condition use it).
         step_penalty: weight of the tiny per-step reward term (reward -= step_penalty).
         progress_coef: weight (per metre) of the style-conditioned progress term: a task agent
-            earns ``progress_coef x aggression x (metres it got closer to its goal this step)``,
+            earns ``progress_coef x aggression x (metres it got closer to its goal this step)``
+            while a lane is within ``lane_radius``,
             where ``aggression = clip(1 - collision / 3, 0, 1)`` comes from its collision
             weight (aggressive 0.93, normal-aggressive 0.47, normal and cautious 0; p_train
             U(0, 1)). 0 (default) turns it off. It is a signal that fires every step and only

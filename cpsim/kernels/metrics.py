@@ -384,7 +384,8 @@ def agent_events(state: State, scratch: StepScratch, model: ModelArrays, params:
     # ---------------------------------------------------------------- reward (tracked only)
     if tracked:
         progress = float(0.0)
-        if state.task_agent[w, a]:
+        # on a lane only: metres gained across the grass would pay for cutting corners
+        if state.task_agent[w, a] and has_lane:
             progress = wp.length(state.prev_pos[w, a] - state.goal[w, a]) - wp.length(p - state.goal[w, a])
         state.reward[w, a] = write_reward(state.conditions, state.reward_raw, state.reward_w, w, a,
                                           goal_now, collided, offroad, violations, has_lane, err, offset, v,

@@ -173,7 +173,8 @@ def test_reward_terms_match_reference():
                           has_lane=bool(st["has_lane"][w, a]), err=float(st["lane_err"][w, a]),
                           offset=float(st["lane_offset"][w, a]), speed=float(st["speed"][w, a]),
                           progress=float(np.linalg.norm(st["prev_pos"][w, a] - st["goal"][w, a])
-                                         - np.linalg.norm(st["pos"][w, a] - st["goal"][w, a])),
+                                         - np.linalg.norm(st["pos"][w, a] - st["goal"][w, a]))
+                          * bool(st["has_lane"][w, a]),
                           progress_coef=0.05)
                 raw, wtd, total = reward_terms_np(conds[w, a], **kw)
                 got_raw = [sim.reward_terms[f"raw_{k}"][w, a].item() for k in REWARD_TERMS]
@@ -204,6 +205,13 @@ def test_progress_term_pays_bold_styles_for_closing_on_the_goal():
         aggression = np.array([1 - 0.2 / 3, 1 - 1.6 / 3, 0.0, 0.0])
         np.testing.assert_allclose(weighted, coef * aggression * gained, rtol=1e-5, atol=1e-8)
     assert weighted[0] > weighted[1] > 0 and weighted[2] == weighted[3] == 0
+    # off the lanes (30 m to the side of the road) the same drive earns nothing
+    off = make_scenario([agent(0.0, 30.0, speed=10.0, goal=(120.0, 30.0))])
+    sim = cpsim.Simulator([off], num_worlds=1, max_agents=1, seed=0,
+                          config={"dynamics": "jerk", "progress_coef": 0.02, "on_offroad": "ignore"})
+    sim.reset(conditions=profiles[:1, None, :])
+    sim.step(np.full((1, 1), KEEP_JERK))
+    assert not sim.state_dict()["has_lane"][0, 0] and sim.reward_terms["raw_progress"][0, 0].item() == 0.0
     # driving away from the goal costs what coming closer pays
     _, wtd, _ = reward_terms_np(profiles[0], goal_now=False, collided=False, offroad=False, violations=0,
                                 has_lane=False, err=0.0, offset=0.0, speed=-5.0, progress=-0.5,
