@@ -31,7 +31,7 @@ import torch as th
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-__all__ = ["ConditionResidual", "LinearEncoder", "add_condition_branch", "encoder_policy_kwargs",
+__all__ = ["ConditionConcat", "ConditionResidual", "LinearEncoder", "add_condition_branch", "encoder_policy_kwargs",
            "factorize_input_layers", "input_weight_rows"]
 
 
@@ -104,31 +104,80 @@ class ConditionResidual(BaseFeaturesExtractor):
         return observations + self.branch(observations[..., self.condition])
 
 
+class ConditionConcat(BaseFeaturesExtractor):
+    """The observation with a learned encoding of its condition slice appended:
+    ``features = [obs, tanh(LayerNorm(W1 cond))]`` ((B, D + hidden)).
+
+    Unlike :class:`ConditionResidual` it leaves every observation value as it is (the zero
+    rows that mean "no partner / no road segment here" stay zero); the layers after it read
+    the style from ``hidden`` extra inputs. A trained flat policy converts with zero weights
+    on those inputs (:func:`add_condition_branch`), so it computes what it did.
+
+    Args:
+        observation_space: flat Box of D values.
+        condition_start, condition_size, hidden: as :class:`ConditionResidual`.
+    Shapes:
+        forward: (B, D) float -> (B, D + hidden).
+    """
+
+    def __init__(self, observation_space: gym.Space, condition_start: int = 17, condition_size: int = 10,
+                 hidden: int = 64) -> None:
+        if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
+            raise ValueError(f"observation_space: ConditionConcat needs a flat Box, got {observation_space}")
+        size = int(observation_space.shape[0])
+        if not (0 <= int(condition_start) and int(condition_size) > 0
+                and int(condition_start) + int(condition_size) <= size):
+            raise ValueError(f"condition_start, condition_size: the slice [{condition_start}, "
+                             f"{int(condition_start) + int(condition_size)}) must lie in the observation "
+                             f"of {size} values")
+        if int(hidden) <= 0:
+            raise ValueError(f"hidden: must be a positive width, got {hidden}")
+        super().__init__(observation_space, size + int(hidden))
+        self.condition = slice(int(condition_start), int(condition_start) + int(condition_size))
+        self.branch = nn.Sequential(nn.Linear(int(condition_size), int(hidden)), nn.LayerNorm(int(hidden)),
+                                    nn.Tanh())
+
+    def forward(self, observations: th.Tensor) -> th.Tensor:
+        return th.cat([observations, self.branch(observations[..., self.condition])], dim=-1)
+
+
 def add_condition_branch(source: nn.Module, target: nn.Module) -> list[str]:
     """Copy a flat recurrent policy into one whose features extractor is a
-    :class:`ConditionResidual`, in place: every parameter of ``source`` goes to the same name
-    in ``target``; the branch keeps its init (output layer zero), so both compute the same.
+    :class:`ConditionResidual` or a :class:`ConditionConcat`, in place, so that both compute
+    the same: every parameter of ``source`` goes to the same name in ``target``; a residual
+    branch's output layer is zeroed, and with a concatenated branch the layers that read the
+    features (:func:`input_weight_rows`) get zero weights on the appended inputs.
 
     Returns:
         The names of the target's parameters that were not copied (the branch's).
     Raises:
-        ValueError: a target without a ConditionResidual, or a source parameter the target
+        ValueError: a target without a condition branch, or a source parameter the target
         lacks or holds in another shape.
     """
-    if not isinstance(getattr(target, "features_extractor", None), ConditionResidual):
-        raise ValueError("target: its policy_kwargs need features_extractor_class=ConditionResidual")
+    extractor = getattr(target, "features_extractor", None)
+    if not isinstance(extractor, (ConditionResidual, ConditionConcat)):
+        raise ValueError("target: its policy_kwargs need features_extractor_class=ConditionResidual or "
+                         "ConditionConcat")
+    widened = {name for name, _ in input_weight_rows(target)} if isinstance(extractor, ConditionConcat) else set()
     src = source.state_dict()
     dst = target.state_dict()
     for name, value in src.items():
-        if name not in dst or dst[name].shape != value.shape:
+        fits = name in dst and (dst[name].shape == value.shape or (
+            name in widened and dst[name].shape[0] == value.shape[0] and dst[name].shape[1] > value.shape[1]))
+        if not fits:
             got = None if name not in dst else tuple(dst[name].shape)
             raise ValueError(f"source: parameter {name} {tuple(value.shape)} has no match in the target ({got})")
-    target.load_state_dict(src, strict=False)
-    # SB3's ortho_init re-initialises every features-extractor layer after construction
-    out_layer = target.features_extractor.branch[-1]
+    params = dict(target.named_parameters())
     with th.no_grad():
-        out_layer.weight.zero_()
-        out_layer.bias.zero_()
+        for name, value in src.items():
+            if name in widened:
+                params[name].zero_()
+                params[name][:, : value.shape[1]] = value
+        target.load_state_dict({k: v for k, v in src.items() if k not in widened}, strict=False)
+        if isinstance(extractor, ConditionResidual):
+            # SB3's ortho_init re-initialises every features-extractor layer after construction
+            extractor.branch[-1].weight.zero_()
+            extractor.branch[-1].bias.zero_()
     return sorted(set(dst) - set(src))
 
 

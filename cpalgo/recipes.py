@@ -134,17 +134,18 @@ class Recipe:
 
 def _eval_policy_kwargs(value: Any, path: str, key: str = "policy_kwargs") -> dict[str, Any]:
     """rl-zoo3 writes policy_kwargs as a Python expression string; evaluate it safely-ish
-    (builtins off, only ``dict``, ``torch.nn``, ``LinearEncoder`` and ``ConditionResidual``
+    (builtins off, only ``dict``, ``torch.nn``, ``LinearEncoder``, ``ConditionResidual`` and ``ConditionConcat``
     (:mod:`cpalgo.encoders`) in scope)."""
     if isinstance(value, dict):
         return dict(value)
     import torch.nn as nn
 
-    from cpalgo.encoders import ConditionResidual, LinearEncoder
+    from cpalgo.encoders import ConditionConcat, ConditionResidual, LinearEncoder
 
     try:
         out = eval(str(value), {"__builtins__": {}},  # noqa: S307
-                   {"dict": dict, "nn": nn, "LinearEncoder": LinearEncoder, "ConditionResidual": ConditionResidual})
+                   {"dict": dict, "nn": nn, "LinearEncoder": LinearEncoder, "ConditionResidual": ConditionResidual,
+                    "ConditionConcat": ConditionConcat})
     except Exception as exc:  # the file is user input: say where it is wrong
         raise ValueError(f"{path}: {key}: cannot evaluate {value!r}: {exc}") from None
     if not isinstance(out, dict):

@@ -14,6 +14,7 @@ import cpsim
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
 from cpalgo.compress import DistillConfig, collect_teacher_episodes, distill_losses, distill_policy
 from cpalgo.encoders import (
+    ConditionConcat,
     ConditionResidual,
     LinearEncoder,
     add_condition_branch,
@@ -264,5 +265,24 @@ def test_add_condition_branch_keeps_a_flat_policy_function():
     obs = th.as_tensor(_observations(5 * 3, d, seed=2)).reshape(5, 3, d)
     for got, want in zip(_outputs(target, obs), _outputs(source, obs)):
         assert th.allclose(got, want, atol=1e-6)
-    with pytest.raises(ValueError, match="ConditionResidual"):
+    with pytest.raises(ValueError, match="ConditionResidual or ConditionConcat"):
         add_condition_branch(source, _model(FLAT).policy)
+
+
+def test_condition_concat_appends_the_encoding_and_converts_a_flat_policy():
+    space = gym.spaces.Box(-1, 1, (30,), np.float32)
+    enc = ConditionConcat(space, condition_start=5, condition_size=4, hidden=8)
+    x = th.as_tensor(_observations(6, 30))
+    y = enc(x)
+    assert y.shape == (6, 38) and enc.features_dim == 38 and th.equal(y[:, :30], x)
+    source = _model(FLAT).policy
+    d = source.observation_space.shape[0]
+    target = _model(dict(FLAT, features_extractor_class=ConditionConcat,
+                         features_extractor_kwargs=dict(condition_start=17, condition_size=10, hidden=8)),
+                    seed=1).policy
+    add_condition_branch(source, target)
+    assert target.lstm_actor.weight_ih_l0.shape[1] == d + 8
+    assert th.count_nonzero(target.lstm_actor.weight_ih_l0[:, d:]) == 0
+    obs = th.as_tensor(_observations(5 * 3, d, seed=3)).reshape(5, 3, d)
+    for got, want in zip(_outputs(target, obs), _outputs(source, obs)):
+        assert th.allclose(got, want, atol=1e-6)
