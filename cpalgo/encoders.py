@@ -61,6 +61,21 @@ class LinearEncoder(BaseFeaturesExtractor):
         return self.linear(observations)
 
 
+def _check_condition_branch(observation_space: gym.Space, condition_start: int, condition_size: int,
+                            hidden: int, name: str) -> int:
+    """Validate a condition branch's arguments; returns the observation size D."""
+    if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
+        raise ValueError(f"observation_space: {name} needs a flat Box, got {observation_space}")
+    size = int(observation_space.shape[0])
+    stop = int(condition_start) + int(condition_size)
+    if not (0 <= int(condition_start) and int(condition_size) > 0 and stop <= size):
+        raise ValueError(f"condition_start, condition_size: the slice [{condition_start}, {stop}) must lie in "
+                         f"the observation of {size} values")
+    if int(hidden) <= 0:
+        raise ValueError(f"hidden: must be a positive width, got {hidden}")
+    return size
+
+
 class ConditionResidual(BaseFeaturesExtractor):
     """The observation plus a learned function of its condition slice, added everywhere:
     ``features = obs + W2 tanh(LayerNorm(W1 cond))``.
@@ -83,16 +98,7 @@ class ConditionResidual(BaseFeaturesExtractor):
 
     def __init__(self, observation_space: gym.Space, condition_start: int = 17, condition_size: int = 10,
                  hidden: int = 64) -> None:
-        if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
-            raise ValueError(f"observation_space: ConditionResidual needs a flat Box, got {observation_space}")
-        size = int(observation_space.shape[0])
-        if not (0 <= int(condition_start) and int(condition_size) > 0
-                and int(condition_start) + int(condition_size) <= size):
-            raise ValueError(f"condition_start, condition_size: the slice [{condition_start}, "
-                             f"{int(condition_start) + int(condition_size)}) must lie in the observation "
-                             f"of {size} values")
-        if int(hidden) <= 0:
-            raise ValueError(f"hidden: must be a positive width, got {hidden}")
+        size = _check_condition_branch(observation_space, condition_start, condition_size, hidden, "ConditionResidual")
         super().__init__(observation_space, size)
         self.condition = slice(int(condition_start), int(condition_start) + int(condition_size))
         self.branch = nn.Sequential(nn.Linear(int(condition_size), int(hidden)), nn.LayerNorm(int(hidden)),
@@ -122,16 +128,7 @@ class ConditionConcat(BaseFeaturesExtractor):
 
     def __init__(self, observation_space: gym.Space, condition_start: int = 17, condition_size: int = 10,
                  hidden: int = 64) -> None:
-        if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
-            raise ValueError(f"observation_space: ConditionConcat needs a flat Box, got {observation_space}")
-        size = int(observation_space.shape[0])
-        if not (0 <= int(condition_start) and int(condition_size) > 0
-                and int(condition_start) + int(condition_size) <= size):
-            raise ValueError(f"condition_start, condition_size: the slice [{condition_start}, "
-                             f"{int(condition_start) + int(condition_size)}) must lie in the observation "
-                             f"of {size} values")
-        if int(hidden) <= 0:
-            raise ValueError(f"hidden: must be a positive width, got {hidden}")
+        size = _check_condition_branch(observation_space, condition_start, condition_size, hidden, "ConditionConcat")
         super().__init__(observation_space, size + int(hidden))
         self.condition = slice(int(condition_start), int(condition_start) + int(condition_size))
         self.branch = nn.Sequential(nn.Linear(int(condition_size), int(hidden)), nn.LayerNorm(int(hidden)),
