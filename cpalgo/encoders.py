@@ -31,7 +31,7 @@ import torch as th
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-__all__ = ["ConditionConcat", "ConditionResidual", "LinearEncoder", "add_condition_branch", "encoder_policy_kwargs",
+__all__ = ["FEATURE_EXTRACTORS", "ConditionConcat", "ConditionResidual", "LinearEncoder", "add_condition_branch", "encoder_policy_kwargs",
            "factorize_input_layers", "input_weight_rows"]
 
 
@@ -62,8 +62,9 @@ class LinearEncoder(BaseFeaturesExtractor):
 
 
 def _check_condition_branch(observation_space: gym.Space, condition_start: int, condition_size: int,
-                            hidden: int, name: str) -> int:
-    """Validate a condition branch's arguments; returns the observation size D."""
+                            hidden: int, name: str) -> tuple[int, slice]:
+    """Validate a condition branch's arguments; returns the observation size D and the
+    condition slice."""
     if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
         raise ValueError(f"observation_space: {name} needs a flat Box, got {observation_space}")
     size = int(observation_space.shape[0])
@@ -73,7 +74,7 @@ def _check_condition_branch(observation_space: gym.Space, condition_start: int, 
                          f"the observation of {size} values")
     if int(hidden) <= 0:
         raise ValueError(f"hidden: must be a positive width, got {hidden}")
-    return size
+    return size, slice(int(condition_start), stop)
 
 
 class ConditionResidual(BaseFeaturesExtractor):
@@ -98,9 +99,10 @@ class ConditionResidual(BaseFeaturesExtractor):
 
     def __init__(self, observation_space: gym.Space, condition_start: int = 17, condition_size: int = 10,
                  hidden: int = 64) -> None:
-        size = _check_condition_branch(observation_space, condition_start, condition_size, hidden, "ConditionResidual")
+        size, condition = _check_condition_branch(observation_space, condition_start, condition_size, hidden,
+                                                  "ConditionResidual")
         super().__init__(observation_space, size)
-        self.condition = slice(int(condition_start), int(condition_start) + int(condition_size))
+        self.condition = condition
         self.branch = nn.Sequential(nn.Linear(int(condition_size), int(hidden)), nn.LayerNorm(int(hidden)),
                                     nn.Tanh(), nn.Linear(int(hidden), size))
         nn.init.zeros_(self.branch[-1].weight)
@@ -128,9 +130,10 @@ class ConditionConcat(BaseFeaturesExtractor):
 
     def __init__(self, observation_space: gym.Space, condition_start: int = 17, condition_size: int = 10,
                  hidden: int = 64) -> None:
-        size = _check_condition_branch(observation_space, condition_start, condition_size, hidden, "ConditionConcat")
+        size, condition = _check_condition_branch(observation_space, condition_start, condition_size, hidden,
+                                                  "ConditionConcat")
         super().__init__(observation_space, size + int(hidden))
-        self.condition = slice(int(condition_start), int(condition_start) + int(condition_size))
+        self.condition = condition
         self.branch = nn.Sequential(nn.Linear(int(condition_size), int(hidden)), nn.LayerNorm(int(hidden)),
                                     nn.Tanh())
 
@@ -176,6 +179,11 @@ def add_condition_branch(source: nn.Module, target: nn.Module) -> list[str]:
             extractor.branch[-1].weight.zero_()
             extractor.branch[-1].bias.zero_()
     return sorted(set(dst) - set(src))
+
+
+#: The features extractors a recipe's ``policy_kwargs`` string may name (rl-zoo3 style).
+FEATURE_EXTRACTORS: dict[str, type[BaseFeaturesExtractor]] = {
+    "LinearEncoder": LinearEncoder, "ConditionResidual": ConditionResidual, "ConditionConcat": ConditionConcat}
 
 
 def encoder_policy_kwargs(policy_kwargs: dict[str, Any] | None, features_dim: int) -> dict[str, Any]:

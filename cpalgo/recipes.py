@@ -134,18 +134,17 @@ class Recipe:
 
 def _eval_policy_kwargs(value: Any, path: str, key: str = "policy_kwargs") -> dict[str, Any]:
     """rl-zoo3 writes policy_kwargs as a Python expression string; evaluate it safely-ish
-    (builtins off, only ``dict``, ``torch.nn``, ``LinearEncoder``, ``ConditionResidual`` and ``ConditionConcat``
-    (:mod:`cpalgo.encoders`) in scope)."""
+    (builtins off, only ``dict``, ``torch.nn`` and :data:`cpalgo.encoders.FEATURE_EXTRACTORS`
+    in scope)."""
     if isinstance(value, dict):
         return dict(value)
     import torch.nn as nn
 
-    from cpalgo.encoders import ConditionConcat, ConditionResidual, LinearEncoder
+    from cpalgo.encoders import FEATURE_EXTRACTORS
 
     try:
         out = eval(str(value), {"__builtins__": {}},  # noqa: S307
-                   {"dict": dict, "nn": nn, "LinearEncoder": LinearEncoder, "ConditionResidual": ConditionResidual,
-                    "ConditionConcat": ConditionConcat})
+                   {"dict": dict, "nn": nn, **FEATURE_EXTRACTORS})
     except Exception as exc:  # the file is user input: say where it is wrong
         raise ValueError(f"{path}: {key}: cannot evaluate {value!r}: {exc}") from None
     if not isinstance(out, dict):

@@ -184,13 +184,12 @@ def register() -> None:
             algos["counterplay"] = CounterPlay
     # rl-zoo3 evaluates policy_kwargs strings in its exp_manager's globals: make the
     # encoder of zoo/counterplay_fast.yml resolvable there, as load_recipe does
-    from cpalgo.encoders import ConditionConcat, ConditionResidual, LinearEncoder
+    from cpalgo.encoders import FEATURE_EXTRACTORS
 
     # (and in its utils, where `-params policy_kwargs:"..."` overrides are evaluated)
     for module in (rl_zoo3.exp_manager, rl_zoo3.utils):
-        module.LinearEncoder = LinearEncoder
-        module.ConditionResidual = ConditionResidual
-        module.ConditionConcat = ConditionConcat
+        for name, extractor in FEATURE_EXTRACTORS.items():
+            setattr(module, name, extractor)
     # schedule settings (learning_rate: cosine(3e-5), ...) read as load_recipe reads them
     from cpalgo.recipes import install_zoo_schedules
 
