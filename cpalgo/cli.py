@@ -253,11 +253,14 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         overrides = {"scenarios": pool + load_womd_option(args.add_womd), "family": None, "num_scenarios": None}
     env = _make_env(recipe, args.seed, **overrides)
     steps = args.timesteps or recipe.n_timesteps
+    if (args.teacher_style_pairs or args.style_pair_coef is not None) and not args.teacher_coef > 0:
+        raise UsageError("--teacher-style-pairs / --style-pair-coef: need --teacher-coef > 0 (TeacherPPO)")
     if args.teacher_coef > 0:  # PPO with the teacher's actions as an auxiliary imitation term
         from cpalgo.teacher_ppo import TeacherPPO
 
         model = TeacherPPO(recipe.policy, env, teacher=args.teacher, teacher_coef=args.teacher_coef,
-                           teacher_coef_final=args.teacher_coef_final, seed=args.seed, verbose=args.verbose,
+                           teacher_coef_final=args.teacher_coef_final, style_pairs=args.teacher_style_pairs,
+                           style_pair_coef=args.style_pair_coef, seed=args.seed, verbose=args.verbose,
                            tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
     else:  # plain PPO on the fast learner (fused LSTM, live slots only); shipped as RecurrentPPO below
         from cpalgo.counterplay.algorithm import CounterPlay
@@ -614,6 +617,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "(cpalgo.teacher_ppo.TeacherPPO; 0: plain PPO)")
     ta.add_argument("--teacher-coef-final", type=_non_negative_float, default=None, metavar="C",
                     help="the imitation weight at the end of PPO (linear from --teacher-coef; default: constant)")
+    ta.add_argument("--teacher-style-pairs", type=_non_negative_int, default=0, metavar="K",
+                    help="with --teacher-coef: label every live decision K more times under a swapped panel style "
+                         "and imitate those labels too (cpalgo.teacher_ppo.TeacherPPO.style_pairs)")
+    ta.add_argument("--style-pair-coef", type=_non_negative_float, default=None, metavar="C",
+                    help="weight of the swapped-style imitation term (default: the current --teacher-coef)")
     ta.add_argument("--drop-optimizer-state", action="store_true",
                     help="save the final checkpoint with a fresh optimiser (weights only: about half the size)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256, metavar="N",

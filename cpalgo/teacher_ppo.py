@@ -15,6 +15,14 @@ has no reason to move and improves where the reward says so:
 * every PPO minibatch adds ``coef`` x the masked mean negative log-likelihood of the
   teacher's action under the current policy; ``coef`` goes linearly from ``teacher_coef``
   to ``teacher_coef_final`` over the run (SB3's ``progress_remaining``).
+* with ``style_pairs`` K > 0 (paired style labels, as :class:`cpalgo.pretrain.ImitationConfig`'s
+  during imitation), every live decision is also labelled under K swapped conditions: each
+  slot's style fields replaced by those of a random panel profile (drawn per slot and rollout,
+  task fields kept), the teacher's action under it stored beside it. Every minibatch then runs
+  the actor again on the same sequences with the swapped condition in the observation and adds
+  ``style_pair_coef`` x the mean NLL of those labels. PPO only sees the style an agent drives
+  under, so it has no reason to keep the actions of the other styles apart; the paired term
+  pins how the action changes with the style at the states PPO visits.
 
 The rest is masked self-play PPO (:class:`cpalgo.common.hooked_train.HookedPPO`: live slots
 only, the fused LSTM policy, ``learn(B)`` stops at B live agent transitions). The policy is
@@ -32,6 +40,7 @@ from sb3_contrib.common.recurrent.type_aliases import RNNStates
 
 from cpalgo.common.hooked_train import HookedPPO, check_number, masked_mean
 from cpalgo.methods.base import base_vec_env
+from cpalgo.policies import sequence_lengths
 
 __all__ = ["TeacherPPO", "export_recurrent_ppo"]
 
@@ -43,16 +52,22 @@ class TeacherPPO(HookedPPO):
         teacher: ``reactive`` (:class:`cpsim.expert.ReactiveExpert`, default) or ``tracking``.
         teacher_coef: weight of the imitation term at the start (1.0).
         teacher_coef_final: its weight at the end of ``learn`` (None: ``teacher_coef``).
+        style_pairs: K swapped-style labels per live decision (0: off; module docstring).
+        style_pair_coef: weight of their imitation term (None: the current ``teacher_coef``).
         Other arguments: :class:`cpalgo.common.hooked_train.HookedPPO`'s and PPO's.
     """
 
-    _RUNTIME_ATTRS: ClassVar[tuple[str, ...]] = HookedPPO._RUNTIME_ATTRS + ("_teacher", "_nll_raw", "_agree_raw")
+    _RUNTIME_ATTRS: ClassVar[tuple[str, ...]] = HookedPPO._RUNTIME_ATTRS + ("_teacher", "_nll_raw", "_agree_raw",
+                                                                         "_pair_raw", "_swap_profiles", "_swap_rng")
 
     def __init__(self, policy: Any, env: Any, teacher: str = "reactive", teacher_coef: float = 1.0,
-                 teacher_coef_final: float | None = None, **kwargs: Any) -> None:
+                 teacher_coef_final: float | None = None, style_pairs: int = 0,
+                 style_pair_coef: float | None = None, **kwargs: Any) -> None:
         self.teacher = teacher
         self.teacher_coef = teacher_coef
         self.teacher_coef_final = teacher_coef_final
+        self.style_pairs = style_pairs
+        self.style_pair_coef = style_pair_coef
         super().__init__(policy, env, **kwargs)
 
     def _validate_settings(self) -> None:
@@ -64,15 +79,30 @@ class TeacherPPO(HookedPPO):
         check_number("teacher_coef", self.teacher_coef, low=0.0)
         if self.teacher_coef_final is not None:
             check_number("teacher_coef_final", self.teacher_coef_final, low=0.0)
+        check_number("style_pairs", self.style_pairs, low=0, integer=True)
+        if self.style_pair_coef is not None:
+            check_number("style_pair_coef", self.style_pair_coef, low=0.0)
+        if self.style_pairs and self.teacher == "tracking":
+            raise ValueError("style_pairs: the tracking teacher ignores the style, so its swapped labels would "
+                             "teach nothing; use a reactive teacher")
 
     def _extra_shapes(self) -> dict[str, tuple[int, ...]]:
-        return {"teacher_action": ()}
+        shapes: dict[str, tuple[int, ...]] = {"teacher_action": ()}
+        if self.style_pairs:
+            from cpsim.conditions import CONDITION_FIELDS
+
+            shapes["swap_action"] = (int(self.style_pairs),)
+            shapes["swap_condition"] = (int(self.style_pairs), len(CONDITION_FIELDS))
+        return shapes
 
     def _reset_runtime(self) -> None:
         super()._reset_runtime()
         self._teacher: Any = None
         self._nll_raw: list[float] = []
         self._agree_raw: list[float] = []
+        self._pair_raw: list[float] = []
+        self._swap_profiles: np.ndarray | None = None
+        self._swap_rng = np.random.default_rng(None if self.seed is None else int(self.seed) + 7919)
 
     def current_teacher_coef(self) -> float:
         """The imitation weight now: linear from ``teacher_coef`` to ``teacher_coef_final``."""
@@ -100,7 +130,35 @@ class TeacherPPO(HookedPPO):
         rows = np.arange(n) if idx is None else idx.cpu().numpy()
         self.rollout_buffer.extras["teacher_action"][self.rollout_buffer.pos, rows] = \
             labels.cpu().numpy()[rows].astype(np.float32)
+        if self.style_pairs:
+            self._label_swapped_styles(sim, rows)
         return out
+
+    def _label_swapped_styles(self, sim: Any, rows: np.ndarray) -> None:
+        """Store, for the live ``rows``, K swapped conditions (K, 10) raw and the teacher's
+        action under each (the world itself drives on under its own conditions)."""
+        from cpsim.conditions import PANEL, STYLE_MASK, profile
+
+        live = sim.conditions  # (W, A, 10) live view the teacher reads
+        n = live.shape[0] * live.shape[1]
+        pos = self.rollout_buffer.pos
+        if pos == 0 or self._swap_profiles is None or self._swap_profiles.shape[1] != n:
+            self._swap_profiles = self._swap_rng.integers(0, len(PANEL), size=(int(self.style_pairs), n))
+        styles = th.as_tensor(np.stack([profile(name) for name in PANEL]), dtype=live.dtype, device=live.device)
+        style_mask = th.as_tensor(STYLE_MASK, device=live.device)
+        original = live.clone()
+        teacher = self._teacher_for(sim)
+        extras = self.rollout_buffer.extras
+        try:
+            for k in range(int(self.style_pairs)):
+                cond = th.where(style_mask, styles[th.as_tensor(self._swap_profiles[k], device=live.device)],
+                                original.reshape(n, -1))
+                live.copy_(cond.reshape(live.shape))
+                labels = teacher.actions().reshape(-1)
+                extras["swap_action"][pos, rows, k] = labels.cpu().numpy()[rows].astype(np.float32)
+                extras["swap_condition"][pos, rows, k] = cond.cpu().numpy()[rows]
+        finally:
+            live.copy_(original)
 
     # ------------------------------------------------------------------ loss
     def _minibatch_terms(self, rollout_data: Any, mask: th.Tensor, logits: th.Tensor) -> dict[str, th.Tensor]:
@@ -111,14 +169,39 @@ class TeacherPPO(HookedPPO):
         with th.no_grad():
             self._nll_raw.append(float(value.item()))
             self._agree_raw.append(float(masked_mean((logits.argmax(-1) == target).float(), mask).item()))
-        return {"teacher_nll_loss": self.current_teacher_coef() * value}
+        terms = {"teacher_nll_loss": self.current_teacher_coef() * value}
+        if self.style_pairs:
+            pair = self._style_pair_nll(rollout_data, mask)
+            coef = self.current_teacher_coef() if self.style_pair_coef is None else float(self.style_pair_coef)
+            terms["style_pair_nll_loss"] = coef * pair
+        return terms
+
+    def _style_pair_nll(self, rollout_data: Any, mask: th.Tensor) -> th.Tensor:
+        """Mean NLL (scalar, with grad) of the swapped-style labels, the actor re-run on the
+        minibatch's sequences with each swapped condition in the observation."""
+        extras = self.rollout_buffer.sample_extras
+        conditions, targets = extras["swap_condition"], extras["swap_action"].long()  # (n, K, 10), (n, K)
+        layout = base_vec_env(self.env).sim.obs_layout
+        keep = mask.to(rollout_data.observations.dtype)[:, None]
+        total = th.zeros((), device=mask.device)
+        for k in range(int(self.style_pairs)):
+            obs = layout.replace_condition(rollout_data.observations, conditions[:, k]) * keep
+            with sequence_lengths(self.policy, mask, rollout_data.lstm_states.pi[0].shape[1]):
+                dist, _ = self.policy.get_distribution(obs, rollout_data.lstm_states.pi, rollout_data.episode_starts)
+            logp = th.log_softmax(dist.distribution.logits.float(), dim=-1)
+            total = total + masked_mean(-logp.gather(-1, targets[:, k, None]).squeeze(-1), mask)
+        value = total / int(self.style_pairs)
+        self._pair_raw.append(float(value.item()))
+        return value
 
     def _after_train(self) -> None:
         if self._nll_raw:
             self.logger.record("train/teacher_nll", float(np.mean(self._nll_raw)))
             self.logger.record("train/teacher_agreement", float(np.mean(self._agree_raw)))
             self.logger.record("train/teacher_coef", self.current_teacher_coef())
-        self._nll_raw, self._agree_raw = [], []
+        if self._pair_raw:
+            self.logger.record("train/style_pair_nll", float(np.mean(self._pair_raw)))
+        self._nll_raw, self._agree_raw, self._pair_raw = [], [], []
         super()._after_train()
 
 

@@ -108,3 +108,77 @@ def test_weight_schedule_settings_and_export():
     assert type(out) is RecurrentPPO
     for a, b in zip(model.policy.state_dict().values(), out.policy.state_dict().values()):
         assert th.equal(a, b)
+
+
+def test_paired_style_labels_are_the_teachers_actions_under_a_swapped_panel_style():
+    from cpsim.conditions import PANEL, STYLE_MASK, profile
+
+    model = make_model(style_pairs=2)
+    sim = model.env.sim
+    checked = []
+    original = TeacherPPO._policy_step
+
+    def spy(self, env, obs, states, starts):
+        own = sim.conditions.clone()
+        out = original(self, env, obs, states, starts)
+        assert th.equal(sim.conditions, own)  # the world drives on under its own conditions
+        live = sim.policy_mask.reshape(-1).cpu().numpy()
+        pos = self.rollout_buffer.pos
+        for k in range(2):
+            cond = self.rollout_buffer.extras["swap_condition"][pos, :, k]
+            labels = self.rollout_buffer.extras["swap_action"][pos, :, k]
+            sim.conditions.copy_(th.as_tensor(np.where(live[:, None], cond, own.reshape(len(live), -1)))
+                                 .reshape(own.shape))
+            expected = make_expert("reactive", sim).actions().reshape(-1).numpy()
+            sim.conditions.copy_(own)
+            np.testing.assert_array_equal(labels[live], expected[live].astype(np.float32))
+            np.testing.assert_allclose(cond[live][:, ~STYLE_MASK], own.reshape(len(live), -1)[live][:, ~STYLE_MASK])
+            panel = np.stack([profile(name) for name in PANEL])[:, STYLE_MASK]
+            assert (np.abs(cond[live][:, None, STYLE_MASK] - panel[None]).max(-1) < 1e-6).any(-1).all()
+            checked.append((labels[live], self.rollout_buffer.extras["teacher_action"][pos, live]))
+        return out
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(TeacherPPO, "_policy_step", spy)
+        collect(model)
+    assert len(checked) == 2 * model.n_steps
+    swapped, own_labels = (np.concatenate(x) for x in zip(*checked))
+    assert (swapped != own_labels).any()  # the swapped style changes some of the teacher's actions
+
+
+def test_the_paired_term_is_the_nll_under_the_swapped_condition_and_pulls_toward_it():
+    model = make_model(teacher_coef=1.0, style_pairs=1, style_pair_coef=3.0, learning_rate=3e-3, n_epochs=10,
+                       ent_coef=0.0)
+    collect(model)
+    layout = model.env.sim.obs_layout
+
+    def pair_nll() -> float:
+        vals = []
+        for data, mask, logits in minibatch_logits(model):
+            terms = model._minibatch_terms(data, mask, logits)
+            term = float(terms["style_pair_nll_loss"]) / 3.0
+            extras = model.rollout_buffer.sample_extras
+            obs = layout.replace_condition(data.observations, extras["swap_condition"][:, 0]) * mask[:, None]
+            model.policy.evaluate_actions(obs, data.actions.long().flatten(), data.lstm_states, data.episode_starts)
+            swapped = model.policy.action_dist.distribution.logits
+            target = extras["swap_action"][:, 0].long()
+            ref = -th.log_softmax(swapped, -1)[mask].gather(-1, target[mask][:, None]).mean()
+            own = -th.log_softmax(logits, -1)[mask].gather(-1, target[mask][:, None]).mean()
+            assert abs(term - float(ref)) < 1e-4
+            assert abs(term - float(own)) > 1e-6  # the swapped condition reached the network
+            vals.append(term)
+        return float(np.mean(vals))
+
+    before = pair_nll()
+    model.train()
+    assert pair_nll() < 0.8 * before
+
+
+def test_style_pair_settings():
+    with pytest.raises(ValueError, match="style_pairs: the tracking teacher"):
+        make_model(teacher="tracking", style_pairs=1)
+    with pytest.raises(ValueError, match="style_pairs"):
+        make_model(style_pairs=-1)
+    with pytest.raises(ValueError, match="style_pair_coef"):
+        make_model(style_pairs=1, style_pair_coef=-0.5)
+    assert "swap_action" not in make_model().rollout_buffer.extras
