@@ -253,14 +253,19 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         overrides = {"scenarios": pool + load_womd_option(args.add_womd), "family": None, "num_scenarios": None}
     env = _make_env(recipe, args.seed, **overrides)
     steps = args.timesteps or recipe.n_timesteps
-    if (args.teacher_style_pairs or args.style_pair_coef is not None) and not args.teacher_coef > 0:
-        raise UsageError("--teacher-style-pairs / --style-pair-coef: need --teacher-coef > 0 (TeacherPPO)")
+    if (args.teacher_style_pairs or args.style_pair_coef is not None or args.style_pair_focus) \
+            and not args.teacher_coef > 0:
+        raise UsageError("--teacher-style-pairs / --style-pair-coef / --style-pair-focus: need --teacher-coef > 0 "
+                         "(TeacherPPO)")
+    if args.style_pair_focus and not args.teacher_style_pairs:
+        raise UsageError("--style-pair-focus: needs --teacher-style-pairs K > 0")
     if args.teacher_coef > 0:  # PPO with the teacher's actions as an auxiliary imitation term
         from cpalgo.teacher_ppo import TeacherPPO
 
         model = TeacherPPO(recipe.policy, env, teacher=args.teacher, teacher_coef=args.teacher_coef,
                            teacher_coef_final=args.teacher_coef_final, style_pairs=args.teacher_style_pairs,
-                           style_pair_coef=args.style_pair_coef, seed=args.seed, verbose=args.verbose,
+                           style_pair_coef=args.style_pair_coef,
+                           style_pair_focus=args.style_pair_focus, seed=args.seed, verbose=args.verbose,
                            tensorboard_log=args.tensorboard, **recipe.algo_kwargs)
     else:  # plain PPO on the fast learner (fused LSTM, live slots only); shipped as RecurrentPPO below
         from cpalgo.counterplay.algorithm import CounterPlay
@@ -622,6 +627,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "and imitate those labels too (cpalgo.teacher_ppo.TeacherPPO.style_pairs)")
     ta.add_argument("--style-pair-coef", type=_non_negative_float, default=None, metavar="C",
                     help="weight of the swapped-style imitation term (default: the current --teacher-coef)")
+    ta.add_argument("--style-pair-focus", action="store_true",
+                    help="average the swapped-style term only over decisions whose swapped label differs from the "
+                         "agent's own (cpalgo.teacher_ppo.TeacherPPO.style_pair_focus)")
     ta.add_argument("--drop-optimizer-state", action="store_true",
                     help="save the final checkpoint with a fresh optimiser (weights only: about half the size)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256, metavar="N",

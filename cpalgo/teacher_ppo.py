@@ -54,20 +54,25 @@ class TeacherPPO(HookedPPO):
         teacher_coef_final: its weight at the end of ``learn`` (None: ``teacher_coef``).
         style_pairs: K swapped-style labels per live decision (0: off; module docstring).
         style_pair_coef: weight of their imitation term (None: the current ``teacher_coef``).
+        style_pair_focus: average that term only over the decisions whose swapped label differs
+            from the agent's own label (the ones that need the condition to be told apart); by
+            default over every live decision, where the pairs with equal labels repeat the main term.
         Other arguments: :class:`cpalgo.common.hooked_train.HookedPPO`'s and PPO's.
     """
 
     _RUNTIME_ATTRS: ClassVar[tuple[str, ...]] = HookedPPO._RUNTIME_ATTRS + ("_teacher", "_nll_raw", "_agree_raw",
-                                                                         "_pair_raw", "_swap_profiles", "_swap_rng")
+                                                                         "_pair_raw", "_differ_raw", "_swap_profiles",
+                                                                         "_swap_rng")
 
     def __init__(self, policy: Any, env: Any, teacher: str = "reactive", teacher_coef: float = 1.0,
                  teacher_coef_final: float | None = None, style_pairs: int = 0,
-                 style_pair_coef: float | None = None, **kwargs: Any) -> None:
+                 style_pair_coef: float | None = None, style_pair_focus: bool = False, **kwargs: Any) -> None:
         self.teacher = teacher
         self.teacher_coef = teacher_coef
         self.teacher_coef_final = teacher_coef_final
         self.style_pairs = style_pairs
         self.style_pair_coef = style_pair_coef
+        self.style_pair_focus = style_pair_focus
         super().__init__(policy, env, **kwargs)
 
     def _validate_settings(self) -> None:
@@ -82,6 +87,8 @@ class TeacherPPO(HookedPPO):
         check_number("style_pairs", self.style_pairs, low=0, integer=True)
         if self.style_pair_coef is not None:
             check_number("style_pair_coef", self.style_pair_coef, low=0.0)
+        if not isinstance(self.style_pair_focus, (bool, np.bool_)):
+            raise ValueError(f"style_pair_focus: must be True or False, got {self.style_pair_focus!r}")
         if self.style_pairs and self.teacher == "tracking":
             raise ValueError("style_pairs: the tracking teacher ignores the style, so its swapped labels would "
                              "teach nothing; use a reactive teacher")
@@ -101,6 +108,7 @@ class TeacherPPO(HookedPPO):
         self._nll_raw: list[float] = []
         self._agree_raw: list[float] = []
         self._pair_raw: list[float] = []
+        self._differ_raw: list[float] = []
         self._swap_profiles: np.ndarray | None = None
         self._swap_rng = np.random.default_rng(None if self.seed is None else int(self.seed) + 7919)
 
@@ -181,6 +189,9 @@ class TeacherPPO(HookedPPO):
         minibatch's sequences with each swapped condition in the observation."""
         extras = self.rollout_buffer.sample_extras
         conditions, targets = extras["swap_condition"], extras["swap_action"].long()  # (n, K, 10), (n, K)
+        own = extras["teacher_action"].reshape(-1, 1).long()
+        differ = (targets != own) & mask[:, None]  # (n, K)
+        self._differ_raw.append(float(differ.float().sum() / mask.float().sum().clamp(min=1.0) / targets.shape[1]))
         layout = base_vec_env(self.env).sim.obs_layout
         keep = mask.to(rollout_data.observations.dtype)[:, None]
         total = th.zeros((), device=mask.device)
@@ -189,7 +200,8 @@ class TeacherPPO(HookedPPO):
             with sequence_lengths(self.policy, mask, rollout_data.lstm_states.pi[0].shape[1]):
                 dist, _ = self.policy.get_distribution(obs, rollout_data.lstm_states.pi, rollout_data.episode_starts)
             logp = th.log_softmax(dist.distribution.logits.float(), dim=-1)
-            total = total + masked_mean(-logp.gather(-1, targets[:, k, None]).squeeze(-1), mask)
+            counted = differ[:, k] if self.style_pair_focus else mask
+            total = total + masked_mean(-logp.gather(-1, targets[:, k, None]).squeeze(-1), counted)
         value = total / int(self.style_pairs)
         self._pair_raw.append(float(value.item()))
         return value
@@ -201,7 +213,8 @@ class TeacherPPO(HookedPPO):
             self.logger.record("train/teacher_coef", self.current_teacher_coef())
         if self._pair_raw:
             self.logger.record("train/style_pair_nll", float(np.mean(self._pair_raw)))
-        self._nll_raw, self._agree_raw, self._pair_raw = [], [], []
+            self.logger.record("train/style_pair_differ", float(np.mean(self._differ_raw)))
+        self._nll_raw, self._agree_raw, self._pair_raw, self._differ_raw = [], [], [], []
         super()._after_train()
 
 

@@ -186,6 +186,7 @@ def test_train_anchor_with_the_teachers_imitation_term_ships_a_plain_recurrent_p
     out = tmp_path / "teacher.zip"
     assert cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--teacher", "reactive",
                      "--teacher-coef", "0.5", "--teacher-coef-final", "0.1", "--timesteps", "300",
+                     "--teacher-style-pairs", "1", "--style-pair-focus",
                      "--eval-tasks", "2", "--no-progress", "--threads", "1"]) == 0
     shipped = RecurrentPPO.load(out, device="cpu")
     assert type(shipped) is RecurrentPPO
@@ -193,6 +194,10 @@ def test_train_anchor_with_the_teachers_imitation_term_ships_a_plain_recurrent_p
     assert json.loads((tmp_path / "teacher.json").read_text())["timesteps"] >= 300
     with pytest.raises(SystemExit):
         cli.main(["train-anchor", "--config", str(cfg), "--out", str(out), "--teacher-coef", "-1"])
+    for bad in (["--teacher-style-pairs", "1"], ["--teacher-coef", "1", "--style-pair-focus"]):
+        with pytest.raises(SystemExit):  # pairs need TeacherPPO, focus needs pairs
+            cli.main(["train-anchor", "--config", str(cfg), "--out", str(tmp_path / "bad.zip"), *bad])
+        assert not (tmp_path / "bad.zip").exists()
 
 
 def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch, capsys):

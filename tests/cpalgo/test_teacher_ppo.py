@@ -182,3 +182,25 @@ def test_style_pair_settings():
     with pytest.raises(ValueError, match="style_pair_coef"):
         make_model(style_pairs=1, style_pair_coef=-0.5)
     assert "swap_action" not in make_model().rollout_buffer.extras
+
+
+def test_the_focused_paired_term_counts_only_decisions_whose_swapped_label_differs():
+    model = make_model(style_pairs=1, style_pair_coef=1.0, style_pair_focus=True)
+    collect(model)
+    layout = model.env.sim.obs_layout
+    seen = 0
+    for data, mask, logits in minibatch_logits(model):
+        term = float(model._minibatch_terms(data, mask, logits)["style_pair_nll_loss"])
+        extras = model.rollout_buffer.sample_extras
+        target = extras["swap_action"][:, 0].long()
+        differ = mask & (target != extras["teacher_action"].reshape(-1).long())
+        obs = layout.replace_condition(data.observations, extras["swap_condition"][:, 0]) * mask[:, None]
+        model.policy.evaluate_actions(obs, data.actions.long().flatten(), data.lstm_states, data.episode_starts)
+        nll = -th.log_softmax(model.policy.action_dist.distribution.logits, -1).gather(-1, target[:, None])[:, 0]
+        expected = float(nll[differ].mean()) if differ.any() else 0.0
+        assert abs(term - expected) < 1e-4
+        assert differ.sum() < mask.sum()  # some swapped labels equal the own one and are left out
+        seen += int(differ.sum())
+    assert seen > 0
+    with pytest.raises(ValueError, match="style_pair_focus"):
+        make_model(style_pairs=1, style_pair_focus="yes")
