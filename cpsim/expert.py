@@ -494,14 +494,22 @@ REACTIVE_STYLE_V1 = ReactiveStyle(schedule=(0.95, 1.25), curve_lat_accel=None, g
 #: :func:`make_expert`.
 REACTIVE_STYLE_V2 = ReactiveStyle(goal_brake=None)
 
-_VERSIONED_STYLES = {"reactive-v1": REACTIVE_STYLE_V1, "reactive-v2": REACTIVE_STYLE_V2}
+#: Version 4: version 3 with every style entering curves at the cautious lateral acceleration
+#: (2.5 m/s^2), so boldness changes speed on straights, headways and yielding but not the
+#: speed in turns, where the student policies of the bolder styles left the road
+#: (``docs/results/README.md``, "Paired style labels in TeacherPPO"); ``reactive-v4``.
+REACTIVE_STYLE_V4 = ReactiveStyle(curve_lat_accel=(2.5, 2.5))
+
+_VERSIONED_STYLES = {"reactive-v1": REACTIVE_STYLE_V1, "reactive-v2": REACTIVE_STYLE_V2,
+                     "reactive-v4": REACTIVE_STYLE_V4}
 
 
 def make_expert(name: str, sim, **kwargs):
     """The imitation teacher by name: ``"tracking"`` (:class:`TrackingExpert`),
     ``"reactive"`` (:class:`ReactiveExpert` with the default :class:`ReactiveStyle`),
     ``"reactive-v2"`` (the same with :data:`REACTIVE_STYLE_V2`: no goal speed limit) or
-    ``"reactive-v1"`` (the same with :data:`REACTIVE_STYLE_V1`)."""
+    ``"reactive-v1"`` (the same with :data:`REACTIVE_STYLE_V1`) or ``"reactive-v4"`` (the same
+    with :data:`REACTIVE_STYLE_V4`: one curve speed limit for every style)."""
     if name not in EXPERTS:
         raise ValueError(f"teacher: unknown expert {name!r}; accepted: {list(EXPERTS)}")
     if name in _VERSIONED_STYLES:
@@ -510,7 +518,7 @@ def make_expert(name: str, sim, **kwargs):
 
 
 #: Names accepted by :func:`make_expert`.
-EXPERTS: tuple[str, ...] = ("tracking", "reactive", "reactive-v2", "reactive-v1")
+EXPERTS: tuple[str, ...] = ("tracking", "reactive", "reactive-v2", "reactive-v1", "reactive-v4")
 
 
 def _jerk_next(a: torch.Tensor, delta: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:

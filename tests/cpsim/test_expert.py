@@ -252,3 +252,15 @@ def test_expert_names_and_style_are_validated():
         ReactiveStyle(goal_brake=-1.0)
     with pytest.raises(ValueError, match="lookahead"):
         ReactiveStyle(lookahead=0.0)
+
+
+def test_reactive_v4_brakes_every_style_alike_for_a_curve():
+    sim = cpsim.Simulator([_curve_ahead(10.0)], num_worlds=1, max_agents=2, seed=0)
+    accel = {}
+    for name in ("reactive-v2", "reactive-v4"):
+        for style in ("cautious", "aggressive"):
+            sim.reset(conditions=cpsim.profile(style))
+            accel[name, style] = float(make_expert(name, sim).targets()[0][0, 0])
+    assert accel["reactive-v4", "aggressive"] < -0.5  # the curve limit binds
+    assert accel["reactive-v4", "aggressive"] == pytest.approx(accel["reactive-v4", "cautious"], abs=1e-4)
+    assert accel["reactive-v2", "aggressive"] > accel["reactive-v2", "cautious"] + 0.1  # v2: bold enters faster
