@@ -243,6 +243,12 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
 
     from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
 
+    if (args.teacher_style_pairs or args.style_pair_coef is not None or args.style_pair_focus) \
+            and not args.teacher_coef > 0:
+        raise UsageError("--teacher-style-pairs / --style-pair-coef / --style-pair-focus: need --teacher-coef > 0 "
+                         "(TeacherPPO)")
+    if args.style_pair_focus and not args.teacher_style_pairs:
+        raise UsageError("--style-pair-focus: needs --teacher-style-pairs K > 0")
     recipe = load_recipe(args.config)
     overrides = {}
     if args.add_womd:  # the recipe's procedural pool plus real scenes
@@ -253,12 +259,6 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         overrides = {"scenarios": pool + load_womd_option(args.add_womd), "family": None, "num_scenarios": None}
     env = _make_env(recipe, args.seed, **overrides)
     steps = args.timesteps or recipe.n_timesteps
-    if (args.teacher_style_pairs or args.style_pair_coef is not None or args.style_pair_focus) \
-            and not args.teacher_coef > 0:
-        raise UsageError("--teacher-style-pairs / --style-pair-coef / --style-pair-focus: need --teacher-coef > 0 "
-                         "(TeacherPPO)")
-    if args.style_pair_focus and not args.teacher_style_pairs:
-        raise UsageError("--style-pair-focus: needs --teacher-style-pairs K > 0")
     if args.teacher_coef > 0:  # PPO with the teacher's actions as an auxiliary imitation term
         from cpalgo.teacher_ppo import TeacherPPO
 

@@ -29,7 +29,7 @@ from cpalgo.common.policy_utils import actor_logits, critic_values, policy_step_
 from cpsim.conditions import sample_conditions
 from cpsim.config import Controller
 from cpsim.envs.selfplay import OBS_BOUND
-from cpsim.expert import EXPERTS
+from cpsim.expert import EXPERTS, actions_under
 
 #: Imitation teachers by name (cpsim.expert.make_expert).
 TEACHERS: tuple[str, ...] = EXPERTS
@@ -162,8 +162,6 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
     conds = sample_conditions(rng, (W, A)) if condition is None else np.broadcast_to(condition, (W, A, len(condition)))
     sim.reset(scenario_index=pool, conditions=conds)
     swapped = [_swap_styles(conds, rng) for _ in range(style_pairs)]
-    live_conditions = sim.conditions  # (W, A, 10) view the expert reads
-    original = live_conditions.clone() if swapped else None
     T = sim.config.episode_steps
     device = policy.device
     states = zero_states(policy, N, device)
@@ -186,15 +184,10 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
         obs_buf[t, :N] = obs
         labels[t, :N] = label
         mask[t] = live
-        try:
-            for k, cond_k in enumerate(swapped, start=1):
-                live_conditions.copy_(cond_k)
-                labels[t, k * N:(k + 1) * N] = expert.actions().reshape(-1).long()
-                obs_buf[t, k * N:(k + 1) * N] = sim.obs_layout.replace_condition(obs, cond_k.reshape(N, -1)) \
-                    * live.reshape(-1, 1)
-        finally:  # the world drives on under the conditions it was reset with
-            if swapped:
-                live_conditions.copy_(original)
+        for k, cond_k in enumerate(swapped, start=1):  # the world drives on under its own conditions
+            labels[t, k * N:(k + 1) * N] = actions_under(expert, cond_k).reshape(-1).long()
+            obs_buf[t, k * N:(k + 1) * N] = sim.obs_layout.replace_condition(obs, cond_k.reshape(N, -1)) \
+                * live.reshape(-1, 1)
         sim.step(action.reshape(W, A).to(th.int32))
         rewards[t] = sim.reward.reshape(-1) * live
         if bool(sim.world_done.all()):
@@ -216,10 +209,9 @@ def collect_episodes(policy, sim, expert, beta: float, rng: np.random.Generator,
 def _swap_styles(conditions: np.ndarray, rng: np.random.Generator) -> th.Tensor:
     """Raw conditions (W, A, 10) whose style fields are those of a random panel profile per
     agent (task fields kept), as a float32 tensor."""
-    from cpsim.conditions import PANEL, STYLE_MASK, profile
+    from cpsim.conditions import PANEL, with_panel_styles
 
-    styles = np.stack([profile(name) for name in PANEL])[rng.integers(0, len(PANEL), size=conditions.shape[:-1])]
-    return th.as_tensor(np.where(STYLE_MASK, styles, conditions).astype(np.float32))
+    return th.as_tensor(with_panel_styles(conditions, rng.integers(0, len(PANEL), size=conditions.shape[:-1])))
 
 
 def _sequence_forward(policy, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:

@@ -145,28 +145,19 @@ class TeacherPPO(HookedPPO):
     def _label_swapped_styles(self, sim: Any, rows: np.ndarray) -> None:
         """Store, for the live ``rows``, K swapped conditions (K, 10) raw and the teacher's
         action under each (the world itself drives on under its own conditions)."""
-        from cpsim.conditions import PANEL, STYLE_MASK, profile
+        from cpsim.conditions import PANEL, with_panel_styles
+        from cpsim.expert import actions_under
 
-        live = sim.conditions  # (W, A, 10) live view the teacher reads
-        n = live.shape[0] * live.shape[1]
+        own = sim.conditions.reshape(-1, sim.conditions.shape[-1]).cpu().numpy()  # (W * A, 10)
         pos = self.rollout_buffer.pos
-        if pos == 0 or self._swap_profiles is None or self._swap_profiles.shape[1] != n:
-            self._swap_profiles = self._swap_rng.integers(0, len(PANEL), size=(int(self.style_pairs), n))
-        styles = th.as_tensor(np.stack([profile(name) for name in PANEL]), dtype=live.dtype, device=live.device)
-        style_mask = th.as_tensor(STYLE_MASK, device=live.device)
-        original = live.clone()
+        if pos == 0 or self._swap_profiles is None or self._swap_profiles.shape[1] != own.shape[0]:
+            self._swap_profiles = self._swap_rng.integers(0, len(PANEL), size=(int(self.style_pairs), own.shape[0]))
         teacher = self._teacher_for(sim)
         extras = self.rollout_buffer.extras
-        try:
-            for k in range(int(self.style_pairs)):
-                cond = th.where(style_mask, styles[th.as_tensor(self._swap_profiles[k], device=live.device)],
-                                original.reshape(n, -1))
-                live.copy_(cond.reshape(live.shape))
-                labels = teacher.actions().reshape(-1)
-                extras["swap_action"][pos, rows, k] = labels.cpu().numpy()[rows].astype(np.float32)
-                extras["swap_condition"][pos, rows, k] = cond.cpu().numpy()[rows]
-        finally:
-            live.copy_(original)
+        for k in range(int(self.style_pairs)):
+            cond = with_panel_styles(own, self._swap_profiles[k])
+            extras["swap_action"][pos, rows, k] = actions_under(teacher, th.as_tensor(cond)).reshape(-1).cpu().numpy()[rows]
+            extras["swap_condition"][pos, rows, k] = cond[rows]
 
     # ------------------------------------------------------------------ loss
     def _minibatch_terms(self, rollout_data: Any, mask: th.Tensor, logits: th.Tensor) -> dict[str, th.Tensor]:

@@ -81,6 +81,13 @@ def profile(name: str) -> np.ndarray:
     return PROFILES[key].copy()
 
 
+def with_panel_styles(conditions: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Raw conditions (..., 10) float32 whose style fields are those of the panel profile
+    ``PANEL[index]`` (index: int array of the leading shape), task fields kept."""
+    styles = np.stack([PROFILES[name] for name in PANEL])[np.asarray(index)]
+    return np.where(STYLE_MASK, styles, np.asarray(conditions)).astype(np.float32)
+
+
 def validate_conditions(conditions: np.ndarray, argument: str = "conditions") -> np.ndarray:
     """Check a (..., 10) array of raw conditions against the training ranges.
 

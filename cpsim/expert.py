@@ -517,6 +517,19 @@ def make_expert(name: str, sim, **kwargs):
     return (TrackingExpert if name == "tracking" else ReactiveExpert)(sim, **kwargs)
 
 
+def actions_under(expert, conditions: torch.Tensor) -> torch.Tensor:
+    """The expert's actions (W, A) int32 at the simulator's current state with every agent's
+    condition replaced by ``conditions`` (W * A, 10) or (W, A, 10) raw; the simulator's own
+    conditions are back in place afterwards (its worlds drive on under them)."""
+    live = expert.sim.conditions  # the live view the expert reads
+    original = live.clone()
+    try:
+        live.copy_(torch.as_tensor(conditions, dtype=live.dtype, device=live.device).reshape(live.shape))
+        return expert.actions()
+    finally:
+        live.copy_(original)
+
+
 #: Names accepted by :func:`make_expert`.
 EXPERTS: tuple[str, ...] = ("tracking", "reactive", "reactive-v2", "reactive-v1", "reactive-v4")
 
