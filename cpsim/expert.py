@@ -496,7 +496,8 @@ REACTIVE_STYLE_V2 = ReactiveStyle(goal_brake=None)
 
 #: Version 4: version 3 with every style entering curves at the cautious lateral acceleration
 #: (2.5 m/s^2), so boldness changes speed on straights, headways and yielding but not the
-#: speed in turns, where the student policies of the bolder styles left the road
+#: speed in turns, where the student policies of the bolder styles left the road. It did not
+#: help: they leave the road off the teacher's path at the teacher's speed
 #: (``docs/results/README.md``, "Paired style labels in TeacherPPO"); ``reactive-v4``.
 REACTIVE_STYLE_V4 = ReactiveStyle(curve_lat_accel=(2.5, 2.5))
 
