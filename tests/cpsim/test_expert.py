@@ -264,3 +264,31 @@ def test_reactive_v4_brakes_every_style_alike_for_a_curve():
     assert accel["reactive-v4", "aggressive"] < -0.5  # the curve limit binds
     assert accel["reactive-v4", "aggressive"] == pytest.approx(accel["reactive-v4", "cautious"], abs=1e-4)
     assert accel["reactive-v2", "aggressive"] > accel["reactive-v2", "cautious"] + 0.1  # v2: bold enters faster
+
+
+def test_reactive_v5_and_v6_move_only_the_bold_end_and_v6_the_curves():
+    import torch
+
+    from cpsim.expert import REACTIVE_STYLE_V5, REACTIVE_STYLE_V6
+
+    bold = {name: boldness(torch.as_tensor(cpsim.profile(name), dtype=torch.float32).reshape(1, -1))
+            for name in ("cautious", "normal", "aggressive")}
+    v2, v5 = ReactiveStyle(goal_brake=None), REACTIVE_STYLE_V5
+    # the cautious end is version 2's, the aggressive end replays the log 1.6x as fast and yields later
+    assert float(v5.at("schedule", bold["cautious"])) == pytest.approx(float(v2.at("schedule", bold["cautious"])))
+    assert float(v5.at("schedule", bold["aggressive"])) == pytest.approx(1.6, abs=0.02)
+    assert float(v5.at("schedule", bold["aggressive"])) > float(v2.at("schedule", bold["aggressive"])) + 0.2
+    assert float(v5.at("yield_margin", bold["aggressive"])) == pytest.approx(-1.0, abs=0.05)
+    # normal sits nearer the cautious end than in version 2 (exponent 0.45 against 0.35)
+    share_v2, share_v5 = ((float(s.at("schedule", bold["normal"])) - 0.95) / (s.schedule[1] - 0.95) for s in (v2, v5))
+    assert share_v5 < share_v2 - 0.05
+    sim = cpsim.Simulator([_curve_ahead(10.0)], num_worlds=1, max_agents=2, seed=0)
+    accel = {}
+    for name in ("reactive-v5", "reactive-v6"):
+        for style in ("cautious", "aggressive"):
+            sim.reset(conditions=cpsim.profile(style))
+            expert = make_expert(name, sim)
+            assert expert.style == {"reactive-v5": REACTIVE_STYLE_V5, "reactive-v6": REACTIVE_STYLE_V6}[name]
+            accel[name, style] = float(expert.targets()[0][0, 0])
+    assert accel["reactive-v6", "aggressive"] == pytest.approx(accel["reactive-v6", "cautious"], abs=1e-4)
+    assert accel["reactive-v5", "aggressive"] > accel["reactive-v5", "cautious"] + 0.1
