@@ -506,7 +506,7 @@ REACTIVE_STYLE_V4 = ReactiveStyle(curve_lat_accel=(2.5, 2.5))
 #: so that normal (0.54 of the way to bold) still waits where aggressive goes. As the
 #: evaluator's ego against the shipped anchor's traffic (50 tasks per split) its aggressive
 #: style completes 83.5 / 77.8 % (version 2: 76.2 / 70.2 %) with 0 % off-road;
-#: ``reactive-v5``. Imitation stage 2 of the anchor shipped since 2026-12-03 used it
+#: ``reactive-v5``. The imitation stage (stage 3 in README.md) of the anchor shipped since 2026-12-03 used it
 #: (``docs/results/README.md``, "A bolder teacher").
 REACTIVE_STYLE_V5 = ReactiveStyle(schedule=(0.95, 1.6), headway=(1.5, 0.5), yield_margin=(0.5, -1.0),
                                   goal_brake=None, exponent=0.45)
