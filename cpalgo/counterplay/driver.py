@@ -33,7 +33,15 @@ from cpalgo.counterplay.branches import BranchJob, BranchResult, BranchRunner, b
 from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import Teacher
 from cpalgo.counterplay.roots import RootStore, SearchRequest
-from cpalgo.counterplay.search import BACKTRACK_MODES, SELECTION_MODES, admit, choose_teacher, select_root, verify
+from cpalgo.counterplay.search import (
+    ADMISSION_VERDICTS,
+    BACKTRACK_MODES,
+    SELECTION_MODES,
+    admission_verdict,
+    choose_teacher,
+    select_root,
+    verify,
+)
 from cpsim.arrays import to_numpy as _to_numpy
 from cpsim.conditions import PANEL, PROFILE_ALIASES, PROFILES, STYLE_MASK
 from cpsim.config import Outcome
@@ -115,7 +123,8 @@ class SearchStats:
     """Counts of one generation (or, summed, of a whole run).
 
     ``failures_by_outcome`` is keyed by "collision" / "offroad" / "timeout",
-    ``root_depths`` by depth in decisions and ``profiles`` by the winning panel profile.
+    ``root_depths`` by depth in decisions, ``profiles`` by the winning panel profile and
+    ``retry_verdicts`` by :func:`~cpalgo.counterplay.search.admission_verdict` (one per retry).
     Seconds are wall (``search_wall_s``) and process CPU (``search_cpu_s``) time spent in
     branch rollouts.
     """
@@ -128,6 +137,7 @@ class SearchStats:
     search_waves: int = 0
     root_depths: Counter = field(default_factory=Counter)
     factual_completed: int = 0
+    retry_verdicts: Counter = field(default_factory=Counter)
     admissible: int = 0
     teachers_chosen: int = 0
     verified: int = 0
@@ -150,6 +160,8 @@ class SearchStats:
         for name in ("failures_without_root", "searches", "searches_skipped", "search_waves", "root_depth_mean",
                      "admissible", "teachers_chosen", "search_cpu_s", "search_wall_s"):
             record(f"counterplay/{name}", getattr(self, name))
+        for name in ADMISSION_VERDICTS:
+            record(f"counterplay/retries_{name}", self.retry_verdicts[name])
         for depth in sorted(self.root_depths):
             record(f"counterplay/roots_by_depth/{depth}", self.root_depths[depth])
         record("counterplay/verified_teachers", self.teachers)
@@ -177,6 +189,7 @@ class SearchStats:
         out.update({f"failures_{k}": v for k, v in self.failures_by_outcome.items()})
         out.update({f"root_depth_{k}": v for k, v in self.root_depths.items()})
         out.update({f"profile_{k}": v for k, v in self.profiles.items()})
+        out.update({f"retries_{k}": v for k, v in self.retry_verdicts.items()})
         out["root_depth_sum"] = sum(d * k for d, k in self.root_depths.items())
         return out
 
@@ -418,7 +431,9 @@ class SearchDriver:
             self._add_branch(factual=int(res.transitions[0]), candidate=int(res.transitions[1:].sum()))
             factual, candidates = res.outcomes[0], res.outcomes[1:]
             stats.factual_completed += int(factual.completed)
-            stats.admissible += sum(admit(factual, c) for c in candidates)
+            verdicts = [admission_verdict(factual, c) for c in candidates]
+            stats.retry_verdicts.update(verdicts)
+            stats.admissible += verdicts.count("admitted")
             j = choose_teacher(factual, candidates, self.settings.selection)
             if j is not None:
                 chosen.append((req, job, res, j))

@@ -26,6 +26,8 @@ __all__ = [
     "select_root",
     "rank_key",
     "rank_branches",
+    "ADMISSION_VERDICTS",
+    "admission_verdict",
     "admit",
     "verify",
     "choose_teacher",
@@ -220,18 +222,35 @@ def _no_new_or_earlier(factual_steps: np.ndarray, candidate_steps: np.ndarray, o
     return bool(np.all((f >= 0) & (c >= f)))
 
 
+#: What :func:`admission_verdict` can say about a retry, in the order its filters apply.
+ADMISSION_VERDICTS: tuple[str, ...] = ("incomplete", "not_better", "harms_other", "admitted")
+
+
+def admission_verdict(factual: BranchOutcome, candidate: BranchOutcome) -> str:
+    """The first filter of :func:`admit` that ``candidate`` fails, or ``"admitted"``.
+
+    ``"incomplete"``: it does not complete the task; ``"not_better"``: it completes but does
+    not outrank ``factual`` (the factual branch completed as early or earlier, or harmed fewer
+    vehicles); ``"harms_other"``: it completes and outranks, but some other vehicle gets a new
+    or earlier collision / off-road. Counting these over a run shows which filter starves the
+    search (:class:`cpalgo.counterplay.driver.SearchStats`, ``retries_*``).
+    """
+    _check_pair(factual, candidate, "candidate")
+    if not candidate.completed:
+        return "incomplete"
+    if not candidate.key > factual.key:
+        return "not_better"
+    others = candidate.others | factual.others
+    safe = _no_new_or_earlier(factual.first_collision_step, candidate.first_collision_step, others) and \
+        _no_new_or_earlier(factual.first_offroad_step, candidate.first_offroad_step, others)
+    return "admitted" if safe else "harms_other"
+
+
 def admit(factual: BranchOutcome, candidate: BranchOutcome) -> bool:
     """Whether ``candidate`` may teach: it completes, outranks ``factual`` and causes no new
     or earlier collision / off-road for any other vehicle (per-vehicle test against the
     factual branch's first_collision_step / first_offroad_step)."""
-    _check_pair(factual, candidate, "candidate")
-    if not candidate.completed:
-        return False
-    if not candidate.key > factual.key:
-        return False
-    others = candidate.others | factual.others
-    return _no_new_or_earlier(factual.first_collision_step, candidate.first_collision_step, others) and \
-        _no_new_or_earlier(factual.first_offroad_step, candidate.first_offroad_step, others)
+    return admission_verdict(factual, candidate) == "admitted"
 
 
 def verify(factual_rerun: BranchOutcome, candidate_rerun: BranchOutcome) -> bool:

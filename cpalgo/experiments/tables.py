@@ -38,6 +38,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from cpalgo.counterplay.search import ADMISSION_VERDICTS
 from cpalgo.evaluate import metrics as M
 from cpalgo.experiments.grid import ANCHOR, GridConfig
 from cpalgo.experiments.runs import load_columns, run_dir, write_bytes_atomic
@@ -381,6 +382,20 @@ def _search_table(res: GridResults, lines: list[str]) -> None:
                   "passed the rerun; branch share: branch transitions / B_post.", ""]
         lines += _table(["Method", "failures/gen", "searches/gen", "admissible share %",
                          "admissible retries/search", "verified share %", "teachers/gen", "branch share %"], rows)
+        verdict_rows = []
+        for m in cp:
+            def share(t: dict, name: str) -> float:
+                return st(t, f"retries_{name}") / sum(st(t, f"retries_{v}") for v in ADMISSION_VERDICTS)
+            verdict_rows.append([res.label(m)] + [_cell(_per_seed(res, m, lambda t, v=v: share(t, v)), 100.0)
+                                                  for v in ADMISSION_VERDICTS]
+                                + [_cell(_per_seed(res, m, lambda t: st(t, "factual_completed") / st(t, "searches")), 100.0)])
+        if any(any(c != "-" for c in row[1:1 + len(ADMISSION_VERDICTS)]) for row in verdict_rows):
+            lines += ["Which filter each retry failed (% of retries, first failing filter; runs that recorded it): "
+                      "incomplete: did not complete the task; not better: completed but did not outrank the "
+                      "factual branch; harms other: a new or earlier collision / off-road of another vehicle. "
+                      "Factual completed: searches whose factual branch completed (% of searches).", ""]
+            lines += _table(["Method", "incomplete %", "not better %", "harms other %", "admitted %",
+                             "factual completed %"], verdict_rows)
     other = []
     for m in family:
         if m in cp:

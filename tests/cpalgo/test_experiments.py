@@ -166,7 +166,13 @@ def test_grid_resumes_skips_finished_runs_and_continues_killed_ones(files, tmp_p
     # the tables cover every run
     rows = (out / "results.csv").read_text().splitlines()
     assert {r.split(",")[0] for r in rows[1:]} == {"anchor", "counterplay"}
-    assert "Table I" in (out / "tables.md").read_text()
+    tables = (out / "tables.md").read_text()
+    assert "Table I" in tables
+    # every retry has a verdict in the run's totals, and the tables show them when there are any
+    totals = resumed["totals"]["search_totals"]
+    verdicts = sum(totals.get(f"retries_{v}", 0) for v in ("incomplete", "not_better", "harms_other", "admitted"))
+    assert verdicts == 5 * totals["searches"]
+    assert ("| Method | incomplete % | not better % |" in tables) == (verdicts > 0)
     # a different grid in the same folder is refused, naming what differs
     with pytest.raises(GridError, match="budget differs"):
         run_experiment({**doc, "budget": 900}, out, backend="sequential", progress=False)
@@ -217,6 +223,14 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     for seed in (0, 1):
         put("ppo-continue", seed, "normal", _columns(sr, [0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]))
         put("cp-no-style", seed, "normal", _columns(sr, [0, 1, 1, 0], [0] * 4, [0] * 4, [0] * 4, [0, 10, 10, 0]))
+    # search counters of the two counterplay seeds: 2 searches x 5 retries each
+    for seed, (incomplete, not_better, harms, admitted) in ((0, (6, 2, 1, 1)), (1, (8, 0, 0, 2))):
+        totals = {"failures": 4, "searches": 2, "teachers_chosen": 1, "admissible": admitted, "verified": 1,
+                  "teachers": 1, "factual_completed": seed, "retries_incomplete": incomplete,
+                  "retries_not_better": not_better, "retries_harms_other": harms, "retries_admitted": admitted}
+        write_bytes_atomic(run_dir(out, RunSpec("counterplay", seed)) / "train.json", json.dumps(
+            {"generations": 2, "b_post": 1000, "wall_s": 60.0, "budget_totals": {"branch_share": 0.25},
+             "totals": {"search_totals": totals}}).encode())
     res = collect_results(out, grid)
     assert res.values("counterplay", "normal", "interactive", "mean", "score") == [80.0 * 3 / 4, 70.0 * 2 / 4]
     assert not repaired(res.evals[("ppo-continue", 0, "normal")])[2]  # a non-at-fault collision is no repair
@@ -232,6 +246,8 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     # Table II lists the ablation; Table IV the aggressive deployment (counterplay: one seed there)
     assert "| No change in driving style | value | - | yes | yes | 5.00 ± 0.00 |" in md
     assert "| CounterPlay | 47.50 ± 17.68 | 12.50 ± 17.68 | 90.00 | 0.00 |" in md
+    # which filter the retries failed: (60, 80) % incomplete, (20, 0) not better, (10, 0) harms, (10, 20) admitted
+    assert "| CounterPlay | 70.0 ± 14.1 | 10.0 ± 14.1 | 5.0 ± 7.1 | 15.0 ± 7.1 | 25.0 ± 35.4 |" in md
     # targets: measured and judged
     assert "| CounterPlay − PPO-Continue, interactive: >= +5 points | +47.50" in md
     assert "timeouts repaired, interactive: CounterPlay >= 30%, PPO-Continue <= 10% | 75.0% vs 0.0% | yes |" in md

@@ -5,7 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cpalgo.counterplay.search import BranchOutcome, admit, choose_teacher, rank_branches, rank_key, select_root, verify
+from cpalgo.counterplay.search import (
+    ADMISSION_VERDICTS,
+    BranchOutcome,
+    admission_verdict,
+    admit,
+    choose_teacher,
+    rank_branches,
+    rank_key,
+    select_root,
+    verify,
+)
 
 # ----------------------------------------------------------------------------- select_root
 
@@ -147,6 +157,20 @@ def test_admit_rejects_incomplete_or_not_better():
     # same rank key: not strictly better
     assert not admit(_outcome(True, arrival=40), _outcome(True, arrival=40))
     assert admit(_outcome(True, arrival=50), _outcome(True, arrival=40))
+
+
+def test_admission_verdict_names_the_first_failing_filter():
+    factual_timeout = _outcome(False)
+    assert admission_verdict(factual_timeout, _outcome(False)) == "incomplete"
+    # incomplete wins even when the retry also harms a neighbour
+    assert admission_verdict(factual_timeout, _outcome(False, col=[-1, 20, -1, -1])) == "incomplete"
+    assert admission_verdict(_outcome(True, arrival=40), _outcome(True, arrival=50)) == "not_better"
+    # completes and outranks the timed-out factual branch, but neighbour 1 collides newly
+    assert admission_verdict(factual_timeout, _outcome(True, arrival=60, col=[-1, 20, -1, -1])) == "harms_other"
+    assert admission_verdict(factual_timeout, _outcome(True, arrival=60)) == "admitted"
+    assert set(ADMISSION_VERDICTS) == {"incomplete", "not_better", "harms_other", "admitted"}
+    for cand in (_outcome(False), _outcome(True, arrival=60), _outcome(True, arrival=60, col=[-1, 20, -1, -1])):
+        assert admit(factual_timeout, cand) == (admission_verdict(factual_timeout, cand) == "admitted")
 
 
 def test_admit_rejects_new_collision_of_a_neighbour():
