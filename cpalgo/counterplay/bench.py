@@ -84,6 +84,7 @@ def run_benchmark(worlds: int = 4, agents: int = 8, n_steps: int = 91, generatio
     from sb3_contrib import RecurrentPPO
 
     from cpalgo.counterplay.algorithm import CounterPlay
+    from cpalgo.counterplay.search import ADMISSION_VERDICTS
     from cpsim import SelfPlayVecEnv
 
     th.set_num_threads(threads)
@@ -144,6 +145,8 @@ def run_benchmark(worlds: int = 4, agents: int = 8, n_steps: int = 91, generatio
         "searches_per_generation": per_gen("counterplay/searches"),
         "admissible_per_generation": per_gen("counterplay/admissible"),
         "teachers_per_generation": per_gen("counterplay/verified_teachers"),
+        # which filter each retry failed (search.admission_verdict), per generation
+        "retry_verdicts_per_generation": {v: per_gen(f"counterplay/retries_{v}") for v in ADMISSION_VERDICTS},
         "budget": cp.budget.as_dict(),
     }
 
