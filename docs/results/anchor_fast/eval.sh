@@ -1,7 +1,8 @@
 #!/bin/bash
-# usage: eval.sh MODEL OUTDIR DEPLOY... (the candidate as its own traffic, 100 tasks per split)
+# usage: [SEED=S] eval.sh MODEL OUTDIR DEPLOY... (the candidate as its own traffic, 100 tasks per split;
+# SEED picks the task set, default 0)
 model=$1; out=$2; shift 2
 for d in "$@"; do
-  python -m cpalgo.evaluate --policy anchor=$model --traffic-policy $model --split both --n 100 \
+  python -m cpalgo.evaluate --policy anchor=$model --traffic-policy $model --split both --n 100 --seed "${SEED:-0}" \
     --deploy $d --no-plots --no-progress --out $out/procedural_$d > $out/eval_$d.log 2>&1
 done
