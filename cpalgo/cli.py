@@ -35,7 +35,7 @@ from cpalgo.recipes import Recipe, import_string, load_recipe, resolve_path
 
 #: Teacher names of ``--teacher`` (cpsim.expert.EXPERTS; kept here so the parser imports no Warp).
 TEACHERS: tuple[str, ...] = ("tracking", "reactive", "reactive-v2", "reactive-v1", "reactive-v4", "reactive-v5",
-                             "reactive-v6")
+                             "reactive-v6", "reactive-v7")
 
 #: Defaults, spelled as the README spells them (they resolve to the shipped files).
 DEFAULT_ANCHOR = "zoo/anchor.zip"

@@ -202,6 +202,11 @@ def test_reactive_expert_brakes_for_its_goal_speed_and_then_completes_the_task()
     assert REACTIVE_STYLE_V2.goal_brake is None and ReactiveStyle().goal_brake is not None
     assert outcome("reactive-v2") != int(Outcome.GOAL)
     assert outcome("reactive") == int(Outcome.GOAL)
+    # versions 5 and 6 have no goal brake either; version 7 is version 6 with it
+    from cpsim.expert import REACTIVE_STYLE_V6, REACTIVE_STYLE_V7
+    assert outcome("reactive-v6") != int(Outcome.GOAL)
+    assert outcome("reactive-v7") == int(Outcome.GOAL)
+    assert replace(REACTIVE_STYLE_V7, goal_brake=None) == REACTIVE_STYLE_V6
 
 
 def test_boldness_orders_the_panel():
