@@ -230,8 +230,9 @@ def admission_verdict(factual: BranchOutcome, candidate: BranchOutcome) -> str:
     """The first filter of :func:`admit` that ``candidate`` fails, or ``"admitted"``.
 
     ``"incomplete"``: it does not complete the task; ``"not_better"``: it completes but does
-    not outrank ``factual`` (the factual branch completed as early or earlier, or harmed fewer
-    vehicles); ``"harms_other"``: it completes and outranks, but some other vehicle gets a new
+    not outrank ``factual`` (the factual branch completed too, and harmed fewer other vehicles,
+    or as many and arrived no later: :func:`rank_key` compares harm before arrival);
+    ``"harms_other"``: it completes and outranks, but some other vehicle gets a new
     or earlier collision / off-road. Counting these over a run shows which filter starves the
     search (:class:`cpalgo.counterplay.driver.SearchStats`, ``retries_*``).
     """

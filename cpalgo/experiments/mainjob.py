@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cpalgo.counterplay.search import ADMISSION_VERDICTS
 from cpalgo.experiments.grid import ANCHOR, GridConfig, load_grid
 
 __all__ = ["main_job_grid", "run_main_job", "main_job_summary"]
@@ -106,7 +107,9 @@ def main_job_summary(out: str | os.PathLike, grid: GridConfig) -> dict[str, Any]
         lines += [f"CounterPlay's search: {int(s.get('failures', 0))} failed tasks, {int(s.get('searches', 0))} "
                   f"searches, {int(s.get('admissible', 0))} admissible retries, {int(s.get('teachers_chosen', 0))} "
                   f"chosen, {int(s.get('verified', 0))} verified, {int(s.get('teachers', 0))} teachers distilled; "
-                  f"branch share of B_post {100 * float(b.get('branch_share', 0)):.1f}%.", ""]
+                  f"branch share of B_post {100 * float(b.get('branch_share', 0)):.1f}%. Retries by the first "
+                  "filter they failed: " + ", ".join(f"{v.replace('_', ' ')} {int(s.get(f'retries_{v}', 0))}"
+                                                   for v in ADMISSION_VERDICTS) + ".", ""]
         files = res.train[("counterplay", grid.seeds[0])].get("search_files") or {}
         if files.get("figure") and Path(files["figure"]).is_file():  # one verified search, drawn
             write_bytes_atomic(out / "search.png", Path(files["figure"]).read_bytes())

@@ -18,7 +18,8 @@ A table is written only where the grid has its runs:
   score, at-fault collision, off-road and goal rates.
 * **Search statistics**: per CounterPlay-family method, failures, searches, admissible
   retries, verified share, teachers per generation and the branch share of B_post (plus
-  the counters of the other methods: rewinds, opponent transitions, distillation teachers).
+  the counters of the other methods: rewinds, opponent transitions, distillation teachers),
+  and which filter each retry failed first (:func:`cpalgo.counterplay.search.admission_verdict`).
 * **Targets** of issue 13, each with its measured value and whether it holds.
 
 Rates are percentages in the tables and in ``results.csv`` (columns ``*_pct``); scores
