@@ -605,9 +605,10 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--teacher", default="tracking", choices=TEACHERS,
                     help="imitation teacher: tracking (cpsim.expert.TrackingExpert, follows its log), "
                          "reactive (cpsim.expert.ReactiveExpert, keeps gaps, yields, slows for curves and for its goal "
-                         "speed, speed by condition), reactive-v2 (its second style, no goal speed limit, "
-                         "cpsim.expert.REACTIVE_STYLE_V2) or reactive-v1 (its first style, "
-                         "cpsim.expert.REACTIVE_STYLE_V1)")
+                         "speed, speed by condition), or one of its versioned styles (cpsim.expert.REACTIVE_STYLE_V*): "
+                         "reactive-v1 (first), reactive-v2 (no goal speed limit), reactive-v4 (v3 with one curve "
+                         "speed), reactive-v5 (bolder aggressive end), reactive-v6 (v5 with one curve speed), "
+                         "reactive-v7 (v6 with the goal brake)")
     ta.add_argument("--add-womd", type=_existing_dir, default=None, metavar="DIR",
                     help="add the WOMD scenes of this folder to the recipe's procedural training pool")
     ta.add_argument("--imitate-worlds", type=_positive_int, default=128, metavar="W", help="worlds per DAgger round")
@@ -648,7 +649,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="checkpoint (SB3 .zip, CounterPlay, BC .pt), or 'expert' for the --teacher")
     oc.add_argument("--teacher", default="tracking", choices=TEACHERS,
                     help="the expert of --model expert: tracking (cpsim.expert.TrackingExpert), "
-                         "reactive (cpsim.expert.ReactiveExpert), reactive-v2 or reactive-v1 (its earlier styles)")
+                         "reactive (cpsim.expert.ReactiveExpert), reactive-v1 ... reactive-v7 (its versioned styles, "
+                         "cpsim.expert.REACTIVE_STYLE_V*)")
     oc.add_argument("--dynamics", default="jerk", choices=["jerk", "classic"],
                     help="dynamics of the simulator for --model expert")
     oc.add_argument("--tasks", type=_positive_int, default=256, metavar="N", help="held-out tasks")
