@@ -383,10 +383,11 @@ def _search_table(res: GridResults, lines: list[str]) -> None:
                   "passed the rerun; branch share: branch transitions / B_post.", ""]
         lines += _table(["Method", "failures/gen", "searches/gen", "admissible share %",
                          "admissible retries/search", "verified share %", "teachers/gen", "branch share %"], rows)
+        def share(t: dict, name: str) -> float:
+            return st(t, f"retries_{name}") / sum(st(t, f"retries_{v}") for v in ADMISSION_VERDICTS)
+
         verdict_rows = []
         for m in cp:
-            def share(t: dict, name: str) -> float:
-                return st(t, f"retries_{name}") / sum(st(t, f"retries_{v}") for v in ADMISSION_VERDICTS)
             verdict_rows.append([res.label(m)] + [_cell(_per_seed(res, m, lambda t, v=v: share(t, v)), 100.0)
                                                   for v in ADMISSION_VERDICTS]
                                 + [_cell(_per_seed(res, m, lambda t: st(t, "factual_completed") / st(t, "searches")), 100.0)])
