@@ -30,7 +30,7 @@ import torch.nn.functional as F
 
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
 from cpalgo.pretrain import _sequence_forward, train_on_episodes
-from cpsim.conditions import PANEL, STYLE_MASK, profile, sample_conditions, with_eval_task
+from cpsim.conditions import sample_conditions, with_eval_task, with_panel_share
 from cpsim.config import Controller
 
 __all__ = ["DistillConfig", "TeacherBatch", "collect_teacher_episodes", "distill_losses", "distill_policy"]
@@ -123,10 +123,7 @@ class TeacherBatch:
 def _draw_conditions(rng: np.random.Generator, shape: tuple[int, int], panel_share: float,
                      eval_task_share: float) -> np.ndarray:
     """p_train draws (W, A, 10); some agents get a panel style or the evaluation task fields."""
-    conds = sample_conditions(rng, shape)
-    styles = np.stack([profile(name) for name in PANEL])[rng.integers(0, len(PANEL), size=shape)]
-    use_panel = (rng.random(shape) < panel_share)[..., None] & STYLE_MASK
-    conds = np.where(use_panel, styles, conds).astype(np.float32)
+    conds = with_panel_share(rng, sample_conditions(rng, shape), panel_share)
     return with_eval_task(rng, conds, eval_task_share)
 
 

@@ -155,6 +155,27 @@ def with_eval_task(rng: np.random.Generator, conditions: np.ndarray, share: floa
     return conditions
 
 
+def with_panel_share(rng: np.random.Generator, conditions: np.ndarray, share: float) -> np.ndarray:
+    """Give a random ``share`` of the agents the style fields of a random panel profile.
+
+    Oversamples the panel's five styles (:data:`PANEL`) among p_train draws, so that a
+    policy trains on the exact profiles it is deployed and searched under. Task fields stay.
+
+    Args:
+        conditions: (..., 10) raw conditions; not modified.
+        share: probability per agent, in [0, 1].
+
+    Returns:
+        (..., 10) float32: a new array. Two draws of ``rng`` decide, in this order: the
+        profile index of every agent, then whether it takes it.
+    """
+    shape = conditions.shape[:-1]
+    index = rng.integers(0, len(PANEL), size=shape)
+    pick = rng.random(shape) < share
+    styled = with_panel_styles(conditions, index)
+    return np.where(pick[..., None], styled, conditions).astype(np.float32)
+
+
 def deployment_condition(spec: str | Sequence[float] | np.ndarray, argument: str = "condition") -> np.ndarray:
     """The raw (10,) condition of a deployed agent: the style fields of ``spec`` (a profile
     name or a raw 10-vector) and the task fields of the evaluation goal criterion

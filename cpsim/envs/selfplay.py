@@ -12,7 +12,13 @@ from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from cpsim.arrays import to_numpy as _np
-from cpsim.conditions import NUM_CONDITION_FIELDS, resolve_condition, sample_conditions, with_eval_task
+from cpsim.conditions import (
+    NUM_CONDITION_FIELDS,
+    resolve_condition,
+    sample_conditions,
+    with_eval_task,
+    with_panel_share,
+)
 from cpsim.scoring import episode_scores
 
 OUTCOME_NAMES: tuple[str, ...] = ("running", "goal", "collision", "offroad", "timeout")
@@ -130,6 +136,11 @@ class SelfPlayVecEnv(VecEnv):
             2 m, 30 m/s) instead of p_train draws; their style fields stay p_train draws.
             p_train's radius is U(2, 12) m, so the evaluator's 2 m sits at the edge of what a
             policy trains on; an anchor recipe can oversample it (0: plain p_train).
+        panel_share: with ``condition="train"``, the share of agents (in [0, 1], drawn
+            independently per agent at each world reset) whose style fields are those of a
+            random panel profile (cautious ... aggressive, :data:`cpsim.conditions.PANEL`)
+            instead of p_train draws; their task fields stay p_train draws. Oversamples the
+            exact styles a policy is deployed and searched under (0: plain p_train).
         seed: seeds scenario draws and condition draws (and the simulator).
         config: a ``SimConfig`` or mapping; other keyword arguments override its fields.
         device: "cpu" or "cuda[:n]".
@@ -185,6 +196,7 @@ class SelfPlayVecEnv(VecEnv):
                  dynamics: str | None = None, condition: str | Sequence[float] | np.ndarray = "train",
                  seed: int = 0, config: Any = None, device: str = "cpu", render_mode: str | None = None,
                  render_worlds: int = 4, timeout_terminal: bool = False, eval_task_share: float = 0.0,
+                 panel_share: float = 0.0,
                  **config_overrides: Any):
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array', 'human']")
@@ -203,13 +215,10 @@ class SelfPlayVecEnv(VecEnv):
         if not isinstance(timeout_terminal, (bool, np.bool_)):
             raise ValueError(f"timeout_terminal: expected a bool, got {timeout_terminal!r}")
         self.timeout_terminal = bool(timeout_terminal)
-        share = float(eval_task_share) if isinstance(eval_task_share, (int, float, np.number)) else float("nan")
-        if not 0.0 <= share <= 1.0:
-            raise ValueError(f"eval_task_share: expected a number in [0, 1], got {eval_task_share!r}")
-        if share > 0.0 and self.fixed_condition is not None:
-            raise ValueError("eval_task_share: only applies to condition='train' (a fixed condition "
-                             "already has its task fields)")
-        self.eval_task_share = share
+        self.eval_task_share = self._condition_share("eval_task_share", eval_task_share,
+                                                     "a fixed condition already has its task fields")
+        self.panel_share = self._condition_share("panel_share", panel_share,
+                                                 "a fixed condition already has its style fields")
         self.render_mode = render_mode
         self.render_worlds = int(render_worlds)
         self._renderer = None
@@ -225,12 +234,23 @@ class SelfPlayVecEnv(VecEnv):
         self._flat_index = np.arange(n)
 
     # ------------------------------------------------------------------ internals
+    def _condition_share(self, name: str, value: Any, fixed_reason: str) -> float:
+        """Validate a per-agent share of p_train draws (``eval_task_share``, ``panel_share``)."""
+        share = float(value) if isinstance(value, (int, float, np.number)) else float("nan")
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
+        if share > 0.0 and self.fixed_condition is not None:
+            raise ValueError(f"{name}: only applies to condition='train' ({fixed_reason})")
+        return share
+
     def _reset_worlds(self, worlds: np.ndarray) -> None:
         """Reset ``worlds`` with a scenario and conditions drawn from this env's RNG."""
         k = worlds.size
         scenario_index = self._rng.integers(0, len(self.scenarios), size=k)
         if self.fixed_condition is None:
             cond = sample_conditions(self._rng, (k, self.max_agents))
+            if self.panel_share > 0.0:
+                cond = with_panel_share(self._rng, cond, self.panel_share)
             if self.eval_task_share > 0.0:
                 with_eval_task(self._rng, cond, self.eval_task_share)
         else:

@@ -171,6 +171,35 @@ def test_eval_task_share_sets_task_fields_only(scenarios):
         SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, condition="normal", eval_task_share=0.5)
 
 
+def test_panel_share_sets_style_fields_only(scenarios):
+    """panel_share: that share of agents drives under a panel profile's style fields exactly,
+    the rest keep p_train styles; task fields stay p_train draws for every agent."""
+    from cpsim.conditions import PANEL, PROFILES, STYLE_MASK, TRAIN_HIGH, TRAIN_LOW
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    panel_styles = np.stack([PROFILES[name][STYLE_MASK] for name in PANEL])  # (5, 8)
+    for share, lo, hi in ((0.0, 0.0, 0.0), (0.5, 0.3, 0.7), (1.0, 1.0, 1.0)):
+        e = SelfPlayVecEnv(scenarios, num_worlds=16, max_agents=A, seed=5, episode_steps=STEPS,
+                           panel_share=share)
+        e.reset()
+        cond = np.asarray(e.sim.conditions.numpy() if hasattr(e.sim.conditions, "numpy") else e.sim.conditions)
+        e.close()
+        style = cond[..., STYLE_MASK].reshape(-1, 1, int(STYLE_MASK.sum()))
+        which = np.all(np.isclose(style, panel_styles[None]), axis=-1)  # (W*A, 5)
+        on_panel = which.any(axis=-1)
+        assert lo <= on_panel.mean() <= hi, (share, on_panel.mean())
+        if share == 1.0:  # every profile is drawn, not only one
+            assert np.all(which.sum(axis=0) > 0)
+        task = cond[..., ~STYLE_MASK]
+        assert np.all(task >= TRAIN_LOW[~STYLE_MASK] - 1e-6) and np.all(task <= TRAIN_HIGH[~STYLE_MASK] + 1e-6)
+        assert task.std(axis=(0, 1)).min() > 0  # task fields still drawn
+    for bad in (-0.1, 1.5, None):
+        with pytest.raises(ValueError, match="panel_share"):
+            SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, panel_share=bad)
+    with pytest.raises(ValueError, match="panel_share"):
+        SelfPlayVecEnv(scenarios, num_worlds=W, max_agents=A, condition="aggressive", panel_share=0.5)
+
+
 def test_seed_makes_resets_reproducible(env):
     env.seed(11)
     a = env.reset()
