@@ -57,6 +57,7 @@ from torch import nn
 
 from cpsim.arrays import to_numpy as _np
 from cpsim.atomic import atomic_path
+from cpsim.config import known_fields
 
 FORMAT_VERSION = 1
 # cpsim.config enum values (contract in docs/ARCHITECTURE.md)
@@ -463,10 +464,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        if set(d) - known:
-            raise ValueError(f"TrainConfig: unknown keys {sorted(set(d) - known)}; known: {sorted(known)}")
-        return cls(**d)
+        return cls(**known_fields(cls, d, "TrainConfig"))
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0 or not 0 <= self.val_fraction < 1:

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
 from cpalgo.pretrain import _sequence_forward, train_on_episodes
 from cpsim.conditions import sample_conditions, with_eval_task, with_panel_share
-from cpsim.config import Controller
+from cpsim.config import Controller, known_fields
 
 __all__ = ["DistillConfig", "TeacherBatch", "collect_teacher_episodes", "distill_losses", "distill_policy"]
 
@@ -92,11 +92,7 @@ class DistillConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "DistillConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"DistillConfig: unknown keys {unknown}; accepted: {sorted(known)}")
-        return cls(**values)
+        return cls(**known_fields(cls, values, "DistillConfig"))
 
 
 @dataclasses.dataclass

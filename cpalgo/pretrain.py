@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from cpalgo.common.policy_utils import actor_logits, critic_values, policy_step_logits, zero_states
 from cpsim.conditions import sample_conditions
-from cpsim.config import Controller
+from cpsim.config import Controller, known_fields
 from cpsim.envs.selfplay import OBS_BOUND
 from cpsim.expert import EXPERTS, actions_under
 
@@ -108,11 +108,7 @@ class ImitationConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "ImitationConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"ImitationConfig: unknown keys {unknown}; accepted: {sorted(known)}")
-        return cls(**values)
+        return cls(**known_fields(cls, values, "ImitationConfig"))
 
 
 @dataclasses.dataclass

@@ -46,7 +46,7 @@ from cpalgo.evaluate import metrics as M
 from cpalgo.recipes import resolve_path, shipped_names, shipped_path
 from cpsim.arrays import to_numpy as _np
 from cpsim.conditions import deployment_condition
-from cpsim.config import Controller, Outcome
+from cpsim.config import Controller, Outcome, known_fields
 from cpsim.scenario.datatypes import AgentType
 
 #: BehaviorBench's eight traffic regimes, in the column order of the tables.
@@ -467,11 +467,7 @@ class EvalConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "EvalConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"EvalConfig: unknown keys {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**d)
+        return cls(**known_fields(cls, d, "EvalConfig"))
 
     def __post_init__(self) -> None:
         if self.max_worlds < 1:

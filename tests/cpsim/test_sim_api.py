@@ -17,6 +17,26 @@ from tests.cpsim.scenes import LANE_WIDTH, agent, make_scenario, small_pool
 NORMAL = cpsim.profile("normal")
 
 
+def test_known_fields_names_the_config_and_every_unknown_key():
+    """The check behind every settings dataclass's from_dict (ImitationConfig, DistillConfig,
+    EvalConfig, bc.TrainConfig): the unknown keys and the accepted ones, before anything is built."""
+    from cpalgo.bc import TrainConfig
+    from cpsim.config import known_fields
+
+    @dataclasses.dataclass(frozen=True)
+    class Settings:
+        lr: float = 1.0
+        epochs: int = 2
+
+    assert known_fields(Settings, {"lr": 0.5}, "Settings") == {"lr": 0.5}
+    with pytest.raises(ValueError, match=r"Settings: unknown keys \['lrr', 'zeta'\]; accepted: \['epochs', 'lr'\]"):
+        known_fields(Settings, {"lrr": 1, "zeta": 2, "epochs": 3}, "Settings")
+    with pytest.raises(ValueError, match="Settings: expected a mapping, got list"):
+        known_fields(Settings, [("lr", 1.0)], "Settings")
+    with pytest.raises(ValueError, match=r"TrainConfig: unknown keys \['epoch'\]"):
+        TrainConfig.from_dict({"epoch": 3})
+
+
 def test_config_rejects_unknown_keys_and_bad_values():
     with pytest.raises(ValueError, match="unknown key.*'bogus'.*valid keys"):
         SimConfig.from_dict({"bogus": 1})
