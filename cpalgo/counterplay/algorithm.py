@@ -7,7 +7,8 @@ lives in :mod:`cpalgo.counterplay.driver`):
    snapshotted and every agent's actor/critic LSTM memory and condition are kept; every
    agent's critic value, sampling uniform and action are traced at every decision.
 2. **Failures.** A POLICY agent whose episode ends in collision, off-road or timeout
-   requests one search; its root is chosen right away from g's own roots.
+   requests one search; its root is chosen right away from the roots of its episode (those
+   of rollout g-1 included, unless ``root_lifetime="generation"``).
 3. **Branches.** g's searches run in waves during rollout g+1, under g's frozen policy, in
    a second simulator on the same pool: per search one factual branch (w0) and one branch
    per panel profile (focal style fields replaced), every other agent keeping its memory
@@ -91,6 +92,10 @@ class CounterPlay(RecurrentPPO):
         rho: value-threshold position in [0, 1] (0.5).
         backtrack: "value" (value-guided root) or "fixed" (``fixed_depth`` decisions back).
         fixed_depth: depth of the "fixed" ablation (20).
+        root_lifetime: "episode" (a root stays usable until its world's episode ends, across
+            the generation boundary) or "generation" (roots are dropped when a new rollout
+            starts, so an episode that began in the previous rollout offers roots only from
+            the current one).
         panel: candidate profiles (names of ``cpsim.conditions.PROFILES``).
         shared_randomness: one uniform per agent per decision shared by a search's
             branches; False gives the focal agent independent draws in every branch.
@@ -136,6 +141,7 @@ class CounterPlay(RecurrentPPO):
         rho: float = 0.5,
         backtrack: str = "value",
         fixed_depth: int = 20,
+        root_lifetime: str = "episode",
         panel: Sequence[str] = PANEL,
         shared_randomness: bool = True,
         style_change: bool = True,
@@ -164,6 +170,7 @@ class CounterPlay(RecurrentPPO):
         self.rho = rho
         self.backtrack = backtrack
         self.fixed_depth = fixed_depth
+        self.root_lifetime = root_lifetime
         self.panel = tuple(panel) if not isinstance(panel, str) else (panel,)
         self.shared_randomness = bool(shared_randomness)
         self.style_change = bool(style_change)
@@ -218,7 +225,7 @@ class CounterPlay(RecurrentPPO):
             rho=float(self.rho), backtrack=self.backtrack, fixed_depth=int(self.fixed_depth), panel=tuple(self.panel),
             shared_randomness=self.shared_randomness, style_change=self.style_change, selection=self.selection,
             verify=self.verify, max_searches=None if self.max_searches is None else int(self.max_searches),
-            seed=int(self.seed or 0),
+            root_lifetime=self.root_lifetime, seed=int(self.seed or 0),
         )
 
     def _check_branching_env(self, env: VecEnv | None) -> None:

@@ -6,8 +6,12 @@ Timeline (the seed paper's integration; DESIGN.md, "CounterPlay"):
 * During generation g's rollout, :meth:`SearchDriver.policy_step` stores roots every
   ``root_interval`` decisions and traces values / uniforms / actions;
   :meth:`SearchDriver.after_step` turns each failed task into a :class:`SearchRequest`
-  whose root is chosen right away from g's own roots and values (roots never outlive
-  their generation, so one root choice never mixes two critics).
+  whose root is chosen right away from the roots and values of its episode. A root lives
+  as long as its world's episode (``root_lifetime="episode"``): with rollouts about as
+  long as an episode, most episodes begin in the previous rollout, and dropping roots at
+  the generation boundary left a failure at decision 90 only the roots of the current
+  rollout. Its memory and value then come from the previous generation's policy and critic
+  (post-training moves them little); ``root_lifetime="generation"`` keeps one generation's.
 * At the end of rollout g, :meth:`SearchDriver.end_rollout` freezes a copy of the policy
   and hands g's requests over. They run in waves *during generation g+1's rollout*
   (:meth:`SearchDriver.advance`, interleaved with the main steps in this process), under
@@ -36,6 +40,7 @@ from cpalgo.counterplay.roots import RootStore, SearchRequest
 from cpalgo.counterplay.search import (
     ADMISSION_VERDICTS,
     BACKTRACK_MODES,
+    ROOT_LIFETIMES,
     SELECTION_MODES,
     admission_verdict,
     choose_teacher,
@@ -91,6 +96,7 @@ class SearchSettings:
     selection: str = "rank"
     verify: bool = True
     max_searches: int | None = None
+    root_lifetime: str = "episode"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -114,6 +120,8 @@ class SearchSettings:
             raise ValueError(f"fixed_depth: must be >= 1, got {self.fixed_depth!r}")
         if self.selection not in SELECTION_MODES:
             raise ValueError(f"selection: expected one of {SELECTION_MODES}, got {self.selection!r}")
+        if self.root_lifetime not in ROOT_LIFETIMES:
+            raise ValueError(f"root_lifetime: expected one of {ROOT_LIFETIMES}, got {self.root_lifetime!r}")
         if self.max_searches is not None and int(self.max_searches) < 0:
             raise ValueError(f"max_searches: must be >= 0 or None, got {self.max_searches!r}")
 
@@ -257,9 +265,13 @@ class SearchDriver:
 
     # ================================================================== rollout
     def start_rollout(self) -> None:
-        """New generation: fresh stats; roots of earlier generations stop being usable."""
+        """New generation: fresh stats. With ``root_lifetime="generation"`` the roots of
+        earlier generations stop being usable; with "episode" they stay until their
+        world's episode ends, so a failure late in an episode that began in the previous
+        rollout can still backtrack into that rollout (an episode of T decisions spans two
+        rollouts whenever ``n_steps`` is near T)."""
         self.stats = SearchStats()
-        if self.roots is not None:
+        if self.roots is not None and self.settings.root_lifetime == "generation":
             self.roots.drop_roots(pinned=[req.snapshot for req in self._pending])
 
     def policy_step(self, sim: Simulator, policy: RecurrentActorCriticPolicy, obs: th.Tensor,

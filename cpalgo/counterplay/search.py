@@ -22,6 +22,7 @@ import numpy as np
 __all__ = [
     "BACKTRACK_MODES",
     "SELECTION_MODES",
+    "ROOT_LIFETIMES",
     "BranchOutcome",
     "select_root",
     "rank_key",
@@ -35,6 +36,9 @@ __all__ = [
 
 BACKTRACK_MODES: tuple[str, ...] = ("value", "fixed")
 SELECTION_MODES: tuple[str, ...] = ("rank", "return")
+#: How long a recorded root stays usable: while its world's episode runs ("episode"), or
+#: only until the generation that recorded it ends ("generation").
+ROOT_LIFETIMES: tuple[str, ...] = ("episode", "generation")
 
 
 def _check_window(window: Sequence[int]) -> tuple[int, int]:

@@ -224,7 +224,7 @@ def test_ablations_run_end_to_end(monkeypatch, ablation):
 
 def test_roots_belong_to_their_generation_and_searches_use_the_frozen_policy():
     env = make_env(1)
-    model = make_model(env, branch_cap=3.0)
+    model = make_model(env, branch_cap=3.0, root_lifetime="generation")
     model.learn(1)
     driver = model._driver
     assert driver.has_pending, "generation 1 queued no search"
@@ -252,6 +252,38 @@ def test_roots_belong_to_their_generation_and_searches_use_the_frozen_policy():
     model.learn(1, reset_num_timesteps=False)
     assert model.search_stats.searches > 0
     assert used and all(used)
+
+
+def test_roots_outlive_their_generation_while_their_episode_runs():
+    """root_lifetime="episode" (default): a rollout shorter than the episode leaves every
+    world mid-episode, and the next rollout can still backtrack to all of that episode's
+    roots; "generation" drops them (previous test)."""
+    env = make_env(1)
+    n_steps = 30  # < EPISODE: each episode spans two rollouts
+    model = make_model(env, branch_cap=3.0, n_steps=n_steps)
+    assert model.root_lifetime == "episode"
+    model.learn(1)
+    driver = model._driver
+    start = model._rollout_start
+    seen = []
+
+    def check_start(env_):
+        start(env_)
+        roots = driver.roots
+        steps_now = np.asarray(env.sim.step_count.numpy() if hasattr(env.sim.step_count, "numpy")
+                               else env.sim.step_count)
+        for w in range(roots.num_worlds):
+            kept = np.sort(roots.roots_of(w)[0])
+            # every root decision of the running episode so far (interval 5), none of an older one
+            expected = np.arange(0, steps_now[w], 5)
+            assert np.array_equal(kept, expected[-roots.ring:]), (w, kept, steps_now[w])
+            seen.append(kept.size)
+
+    model._rollout_start = check_start
+    model.learn(1, reset_num_timesteps=False)
+    assert seen and max(seen) > 0, "no root of generation 1 was usable in generation 2"
+    with pytest.raises(ValueError, match="root_lifetime"):
+        make_model(make_env(1), root_lifetime="forever")
 
 
 def test_learn_counts_b_post_and_the_progress_bar_ends_at_what_ran(capsys):
