@@ -15,6 +15,27 @@ from stable_baselines3.common.callbacks import BaseCallback
 from cpsim.atomic import atomic_path
 
 
+def saved_data_keys(path: str | os.PathLike) -> set[str] | None:
+    """Names of the attributes an SB3 checkpoint saved (the keys of its ``data`` entry), or
+    None when ``path`` (``.zip`` appended when missing, as SB3 does) is not such a file.
+
+    A setting that a checkpoint lacks was added after it was written: its loader can then
+    restore the behaviour of that time instead of the new default.
+    """
+    import json
+    import zipfile
+
+    candidates = [Path(path)] if Path(path).suffix == ".zip" else [Path(path), Path(str(path) + ".zip")]
+    for candidate in candidates:
+        if candidate.is_file():
+            try:
+                with zipfile.ZipFile(candidate) as archive:
+                    return set(json.loads(archive.read("data")))
+            except (zipfile.BadZipFile, KeyError, ValueError):
+                return None
+    return None
+
+
 def save_model_atomic(model: Any, path: str | os.PathLike) -> Path:
     """Save an SB3 model to ``path`` (``.zip`` appended when missing) atomically."""
     path = Path(path)

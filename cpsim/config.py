@@ -79,12 +79,11 @@ def num_actions(dynamics: str) -> int:
     raise ValueError(f"dynamics: unknown model {dynamics!r}; accepted: {sorted(DYNAMICS_MODELS)}")
 
 
-
 def known_fields(cls: type, values: Mapping[str, Any], name: str) -> dict[str, Any]:
     """``values`` as a dict after checking every key is a field of the dataclass ``cls``.
 
-    The one check behind the ``from_dict`` of every settings dataclass: a key that is not a
-    field raises ``ValueError`` naming the config (``name``), the unknown keys and the
+    The check behind the ``from_dict`` of the settings dataclasses (``SimConfig`` keeps its
+    own, which also takes None or a ``SimConfig``): a key that is not a field raises ``ValueError`` naming the config (``name``), the unknown keys and the
     accepted ones, before anything is built.
     """
     if not isinstance(values, Mapping):
@@ -94,6 +93,7 @@ def known_fields(cls: type, values: Mapping[str, Any], name: str) -> dict[str, A
     if unknown:
         raise ValueError(f"{name}: unknown keys {unknown}; accepted: {accepted}")
     return dict(values)
+
 
 @dataclasses.dataclass(frozen=True)
 class SimConfig:

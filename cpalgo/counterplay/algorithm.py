@@ -36,6 +36,7 @@ sb3-contrib's policy class the computation is exactly the parent's: parameters a
 
 from __future__ import annotations
 
+import os
 from copy import deepcopy
 from typing import TYPE_CHECKING, Any, ClassVar, Sequence
 
@@ -291,6 +292,32 @@ class CounterPlay(RecurrentPPO):
 
     def _excluded_save_params(self) -> list[str]:
         return super()._excluded_save_params() + list(self._RUNTIME_ATTRS)
+
+    #: settings added after checkpoints were first written, with the behaviour such an older
+    #: checkpoint was trained with (it comes back with that, not with today's default)
+    LEGACY_SETTINGS: ClassVar[dict[str, Any]] = {"root_lifetime": "generation"}
+
+    @classmethod
+    def load(cls, path: Any, env: GymEnv | None = None, device: th.device | str = "auto",
+             custom_objects: dict[str, Any] | None = None, print_system_info: bool = False,
+             force_reset: bool = True, **kwargs: Any) -> "CounterPlay":
+        model = super().load(path, env=env, device=device, custom_objects=custom_objects,
+                             print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+        model.apply_legacy_settings(path, keep=tuple(kwargs))
+        return model
+
+    def apply_legacy_settings(self, path: Any, keep: Sequence[str] = ()) -> None:
+        """Give every :attr:`LEGACY_SETTINGS` entry that the checkpoint at ``path`` did not
+        save its value of that time (``keep``: names set explicitly by the caller). Used by
+        :meth:`load` and by grid resumes (``set_parameters`` of a checkpoint)."""
+        from cpalgo.checkpoint import saved_data_keys
+
+        saved = saved_data_keys(path) if isinstance(path, (str, os.PathLike)) else None
+        if saved is None:
+            return
+        for name, value in self.LEGACY_SETTINGS.items():
+            if name not in saved and name not in keep:
+                setattr(self, name, value)
 
     # ================================================================== learn
     def _setup_learn(self, total_timesteps: int, callback: MaybeCallback = None, reset_num_timesteps: bool = True,
@@ -596,7 +623,9 @@ class CounterPlay(RecurrentPPO):
 
         With ``main_draws`` the branch samples every decision from the uniforms the main
         rollout used (fresh draws once those run out), so it reproduces the recorded
-        actions and trajectory: the check that branches start from the true state.
+        actions and trajectory: the check that branches start from the true state. That
+        holds for a root recorded since the policy's last update; a root of the previous
+        rollout (kept with ``root_lifetime="episode"``) replays under the updated policy.
         Returns the :class:`BranchResult` (``actions`` (1, T, A), ``xy`` (1, T + 1, A, 2)).
         """
         if self._driver is None:

@@ -191,9 +191,10 @@ class RootStore:
     def drop_roots(self, pinned: list[Any] | tuple[Any, ...] = ()) -> None:
         """A new generation starts: every stored root stops being usable.
 
-        Roots belong to the generation that recorded them, so a root choice never mixes
-        the values of two critics. Snapshots in ``pinned`` (still needed by queued
-        requests) are not recycled.
+        Only with ``root_lifetime="generation"`` (otherwise a root lives until its episode
+        ends): roots then belong to the generation that recorded them, so a root choice
+        never mixes the values of two critics. Snapshots in ``pinned`` (still needed by
+        queued requests) are not recycled.
         """
         self.root_step[:] = -1
         self.snapshot_id[:] = -1

@@ -210,6 +210,8 @@ def train_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: Ech
     if (folder / "checkpoint.zip").is_file() and (folder / "checkpoint.json").is_file():
         state = json.loads((folder / "checkpoint.json").read_text())
         model.set_parameters(str(folder / "checkpoint.zip"), exact_match=True, device=grid.device)
+        if hasattr(model, "apply_legacy_settings"):  # a checkpoint older than a setting keeps its behaviour
+            model.apply_legacy_settings(str(folder / "checkpoint.zip"))
         restore_budget_state(model, state)
         wall_before = float(state.get("wall_s", 0.0))
         resumed_from = int(model.budget.total)

@@ -286,6 +286,34 @@ def test_roots_outlive_their_generation_while_their_episode_runs():
         make_model(make_env(1), root_lifetime="forever")
 
 
+def test_a_checkpoint_older_than_root_lifetime_comes_back_with_the_behaviour_it_had(tmp_path):
+    """Checkpoints written before the setting existed dropped roots every generation: load
+    (and a grid resume through apply_legacy_settings) restores that, today's saves keep theirs."""
+    import json
+    import zipfile
+
+    env = make_env(1)
+    model = make_model(env)
+    new = tmp_path / "new.zip"
+    model.save(new)
+    old = tmp_path / "old.zip"
+    with zipfile.ZipFile(new) as src, zipfile.ZipFile(old, "w") as dst:
+        for item in src.infolist():
+            payload = src.read(item.filename)
+            if item.filename == "data":
+                data = json.loads(payload)
+                assert data.pop("root_lifetime") == "episode"
+                payload = json.dumps(data).encode()
+            dst.writestr(item, payload)
+    assert CounterPlay.load(new, env=env).root_lifetime == "episode"
+    assert CounterPlay.load(old, env=env).root_lifetime == "generation"
+    assert CounterPlay.load(old, env=env, root_lifetime="episode").root_lifetime == "episode"
+    fresh = make_model(env)
+    fresh.set_parameters(str(old), exact_match=True)
+    fresh.apply_legacy_settings(str(old))
+    assert fresh.root_lifetime == "generation" and fresh._search_settings().root_lifetime == "generation"
+
+
 def test_learn_counts_b_post_and_the_progress_bar_ends_at_what_ran(capsys):
     env = make_env(1)
     model = make_model(env, branch_cap=3.0)
