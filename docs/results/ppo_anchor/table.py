@@ -16,7 +16,7 @@ TV5 = os.path.join(HERE, "..", "teacher_v5")
 CANDIDATES = {
     "I9F (shipped)": [(os.path.join(TV5, "I9F"), ""), (os.path.join(TV5, "I9F_seed1"), "")],
     **{name: [(os.path.join(HERE, name), ""), (os.path.join(HERE, name), "_seed1")]
-       for name in ("C75", "C150", "P150", "C75_D2", "T_c2.0", "T_c0.5")},
+       for name in ("C75", "C150", "P150", "W50", "C75_D2", "T_c2.0", "T_c0.5")},
 }
 REGIMES = ["idm", "selfplay", "bc", "replay", "aggressive", "normal", "cautious", "mix"]
 SPLITS = ("interactive", "random")
