@@ -140,6 +140,53 @@ def _recipe_file(text: str) -> str:
 
 
 # ----------------------------------------------------------------------------- helpers
+def check_out_path(path: str | os.PathLike, argument: str, *, folder: bool) -> Path:
+    """``UsageError`` naming ``argument`` when ``path`` cannot be written: one of its parents
+    is a file, or the path itself is a file where a folder goes (``folder``) or the reverse.
+    Commands call it before any work, so a bad ``--out`` costs nothing."""
+    out = Path(path)
+    if out.exists():
+        if folder and not out.is_dir():
+            raise UsageError(f"{argument}: {str(out)!r} is a file, not a folder")
+        if not folder and out.is_dir():
+            raise UsageError(f"{argument}: {str(out)!r} is a folder, not a file")
+        return out
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise UsageError(f"{argument}: {str(parent)!r} is a file, so {str(out)!r} cannot be created")
+            break
+    return out
+
+
+def check_algorithm_arguments(cls: type, recipe: Recipe, argument: str = "--config", **extra: Any) -> None:
+    """``UsageError`` naming the recipe file and the setting when ``cls`` (an SB3 algorithm)
+    rejects one of the recipe's algorithm arguments (plus ``extra``), or the recipe's
+    env_kwargs are not valid :class:`cpsim.SelfPlayVecEnv` arguments. Nothing is built: the
+    algorithm is constructed without env and network, which runs its argument checks only."""
+    from cpalgo.methods import algorithm_parameters, check_algorithm_values
+    from cpsim.envs.selfplay import check_selfplay_arguments
+
+    kwargs = {**recipe.algo_kwargs, **extra}
+    unknown = sorted(set(kwargs) - algorithm_parameters(cls))
+    if unknown:
+        raise UsageError(f"{argument}: {recipe.path}: {unknown[0]!r} is not an argument of {cls.__name__}")
+    try:
+        check_algorithm_values(cls, kwargs, recipe.policy)
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"{argument}: {recipe.path}: {exc}") from None
+    try:
+        check_selfplay_arguments(**recipe.env_kwargs)
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"{argument}: {recipe.path}: env_kwargs: {exc}") from None
+
+
+def _brief(exc: BaseException, lines: int = 2) -> str:
+    """The first non-empty lines of an exception's message (torch's state-dict mismatch
+    lists every tensor)."""
+    return " ".join([line.strip() for line in str(exc).splitlines() if line.strip()][:lines])
+
+
 def _set_threads(threads: int | None) -> None:
     import torch
 
@@ -251,6 +298,12 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     if args.style_pair_focus and not args.teacher_style_pairs:
         raise UsageError("--style-pair-focus: needs --teacher-style-pairs K > 0")
     recipe = load_recipe(args.config)
+    out = check_out_path(args.out, "--out", folder=False)
+    if args.teacher_coef > 0:
+        from cpalgo.teacher_ppo import TeacherPPO as algorithm_class
+    else:
+        from cpalgo.counterplay.algorithm import CounterPlay as algorithm_class
+    check_algorithm_arguments(algorithm_class, recipe)
     overrides = {}
     if args.add_womd:  # the recipe's procedural pool plus real scenes
         from cpsim.envs.selfplay import resolve_scenarios
@@ -277,7 +330,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         try:
             model.set_parameters(args.init, exact_match=True)
         except Exception as exc:  # noqa: BLE001 - reported with the file name
-            raise UsageError(f"--init: {args.init} does not match the recipe's policy ({exc})") from None
+            raise UsageError(f"--init: {args.init} does not match the recipe's policy ({_brief(exc)})") from None
     imitation = []
     t0 = time.perf_counter()
     if args.imitate:  # DAgger warm start from an expert teacher before PPO
@@ -292,7 +345,6 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
                                    seed=args.seed)
         if args.imitate_only:
             steps = 0
-    out = Path(args.out)
     ckpt = AtomicCheckpointCallback(save_freq=max(1, 10 * recipe.algo_kwargs.get("n_steps", 64)), path=out)
     if steps:
         model.learn(steps, progress_bar=args.progress, callback=ckpt)
@@ -343,7 +395,8 @@ def post_train(anchor: str | os.PathLike = DEFAULT_ANCHOR, config: str | os.Path
         recipe = load_recipe(config)
     except ValueError as exc:
         raise UsageError(f"--config: {exc}") from None
-    out = Path(out_dir)
+    check_algorithm_arguments(CounterPlay, recipe, **(overrides or {}))
+    out = check_out_path(out_dir, "--out", folder=True)
     out.mkdir(parents=True, exist_ok=True)
     max_agents = int(recipe.env_kwargs.get("max_agents", 8))
     algo_kwargs = dict(recipe.algo_kwargs)
@@ -354,7 +407,7 @@ def post_train(anchor: str | os.PathLike = DEFAULT_ANCHOR, config: str | os.Path
     try:
         model.set_parameters(str(anchor), exact_match=True)
     except Exception as exc:  # noqa: BLE001 - reported with the file name
-        raise UsageError(f"--anchor: {anchor} does not match the recipe's policy ({exc})") from None
+        raise UsageError(f"--anchor: {anchor} does not match the recipe's policy ({_brief(exc)})") from None
     before_model = RecurrentPPO.load(str(anchor), device="cpu")
     print(f"evaluating the anchor on {eval_tasks} held-out procedural tasks (normal condition) ...")
     before = _outcomes(before_model, eval_tasks, max_agents)
@@ -465,7 +518,9 @@ def cmd_searches(args: argparse.Namespace) -> int:
 
     path = searches_path(args.model)
     if not path.is_file():
-        raise UsageError(f"--model: no search file {str(path)!r} (CounterPlay runs write it beside their checkpoint)")
+        raise UsageError(f"--model: no search file {str(path)!r} (counterfactual CounterPlay runs write it beside "
+                         "their checkpoint; PPO baselines, distillation controls and runs with keep_searches=0 "
+                         "keep none)")
     try:
         records = load_records(path)
     except ValueError as exc:
@@ -480,7 +535,7 @@ def cmd_searches(args: argparse.Namespace) -> int:
         raise UsageError(f"--show: index {args.show} outside 0..{len(records) - 1} ({len(records)} searches kept)")
     from cpalgo.viz import render_search
 
-    out = args.out or f"search_{args.show}.png"
+    out = str(check_out_path(args.out or f"search_{args.show}.png", "--out", folder=False))
     try:
         written = render_search(records[args.show], out)
     except ValueError as exc:
@@ -493,6 +548,7 @@ def cmd_searches(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- outcomes
 def cmd_outcomes(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
+    check_out_path(args.out, "--out", folder=False)
     if args.model == "expert":  # an imitation teacher
         from cpalgo.selfplay_eval import expert_outcomes
 
@@ -543,18 +599,16 @@ def build_parser() -> argparse.ArgumentParser:
         return p
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--seed", type=int, default=0, help="seed of the env, the algorithm and the scenario draws")
+        p.add_argument("--seed", type=_non_negative_int, default=0,
+                       help="seed of the env, the algorithm and the scenario draws")
         p.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: torch's)")
         p.add_argument("--verbose", type=int, default=0, choices=[0, 1, 2], help="SB3 verbosity")
         p.add_argument("--tensorboard", default=None, metavar="DIR", help="write tensorboard logs to DIR")
         p.add_argument("--no-progress", dest="progress", action="store_false", help="hide the progress bar")
 
-    def post_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--out", default="runs/counterplay", metavar="DIR",
-                       help="folder for counterplay.zip, summary.json and summary.md")
-        p.add_argument("--timesteps", type=_positive_int, default=None, metavar="N",
-                       help="main transitions to train (default: the recipe's n_timesteps); "
-                            "training stops after the rollout that reaches N")
+    def post_options(p: argparse.ArgumentParser, out_help: str, timesteps_help: str) -> None:
+        p.add_argument("--out", default="runs/counterplay", metavar="DIR", help=out_help)
+        p.add_argument("--timesteps", type=_positive_int, default=None, metavar="N", help=timesteps_help)
         p.add_argument("--worlds", type=_positive_int, default=None, metavar="W",
                        help="training worlds; a rollout is W x max_agents x n_steps transitions "
                             "(default: the recipe's n_envs / max_agents)")
@@ -572,7 +626,10 @@ def build_parser() -> argparse.ArgumentParser:
               "failure repair), and write the checkpoints, tables and a summary. --eval-tasks counts "
               "tasks per split.")
     common(run)
-    post_options(run)
+    post_options(run, "folder for the grid: runs/<method>/seed0/model.zip, results.csv, tables.md, "
+                      "summary.md, summary.json and plots (a rerun resumes what is there)",
+                 "B_post of each method: every agent transition, main or branch, counts, and both methods "
+                 "stop at N (default: the recipe's n_timesteps)")
     from cpalgo.compress import add_command as add_compress_command
     from cpalgo.experiments.command import add_commands, main_job_defaults
 
@@ -585,7 +642,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="anchor checkpoint (RecurrentPPO with the recipe's network)")
     pt.add_argument("--config", type=_recipe_file, default=DEFAULT_POST_CONFIG, metavar="YAML",
                     help="zoo YAML recipe")
-    post_options(pt)
+    post_options(pt, "folder for counterplay.zip (and its .searches.npz), summary.json and summary.md",
+                 "main transitions to train (default: the recipe's n_timesteps); training stops after the "
+                 "rollout that reaches N")
     pt.set_defaults(func=cmd_post_train)
 
     ta = add("train-anchor", "train the reward-conditioned self-play anchor",
@@ -675,7 +734,7 @@ def build_parser() -> argparse.ArgumentParser:
     po = add("pool", "generate and summarise a procedural scenario pool",
              "Generate a procedural scenario pool and print a summary per family.")
     po.add_argument("--n", type=_positive_int, default=60, help="scenarios")
-    po.add_argument("--seed", type=int, default=0, help="first seed")
+    po.add_argument("--seed", type=_non_negative_int, default=0, help="first seed")
     po.add_argument("--families", nargs="*", default=None, metavar="FAMILY",
                     help="procedural families to draw from (default: all)")
     po.set_defaults(func=cmd_pool)

@@ -330,6 +330,12 @@ def compress_checkpoint(anchor: str, out: str, features_dim: int = 128, config: 
             "config": dataclasses.asdict(cfg), "rounds": rounds, "wall_s": round(time.perf_counter() - t0, 1)}
 
 
+def _non_negative_int(text: str) -> int:
+    from cpalgo.cli import _non_negative_int as whole
+
+    return whole(text)
+
+
 def add_command(add: Callable[..., Any]) -> None:
     """Add ``compress-anchor`` with ``cpalgo.cli``'s ``add(name, help, description)``."""
     p = add("compress-anchor", "convert a flat anchor into the faster encoder network",
@@ -346,7 +352,8 @@ def add_command(add: Callable[..., Any]) -> None:
                    help="distillation rounds (0: the factorisation only)")
     p.add_argument("--worlds", type=int, default=DistillConfig.num_worlds, metavar="W", help="worlds per round")
     p.add_argument("--epochs", type=int, default=DistillConfig.epochs, metavar="N", help="passes per round")
-    p.add_argument("--learning-rate", type=float, default=DistillConfig.learning_rate, metavar="LR")
+    p.add_argument("--learning-rate", type=float, default=DistillConfig.learning_rate, metavar="LR",
+                   help="Adam learning rate of the distillation")
     p.add_argument("--beta", type=float, default=DistillConfig.beta, metavar="P",
                    help="probability that the anchor drives an agent in the first round (halved every round; "
                         "0 when continuing with --init drives with the student only)")
@@ -355,7 +362,8 @@ def add_command(add: Callable[..., Any]) -> None:
     p.add_argument("--scenarios", type=int, default=192, metavar="N",
                    help="procedural training scenarios of the rollouts (the anchor recipes' pool)")
     p.add_argument("--max-agents", type=int, default=8, metavar="A", help="agent slots per world")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_non_negative_int, default=0,
+                   help="seed of the procedural pool, the rollouts and the initialisation")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.set_defaults(func=_cmd_compress)
 
@@ -366,7 +374,7 @@ def _cmd_compress(args: Any) -> int:
     import sys
     from pathlib import Path
 
-    from cpalgo.cli import UsageError, _set_threads, load_womd_option
+    from cpalgo.cli import UsageError, _set_threads, check_out_path, load_womd_option
     from cpalgo.evaluate.tables import write_text_atomic
     from cpalgo.recipes import resolve_path
     from cpsim.envs.selfplay import resolve_scenarios
@@ -377,6 +385,7 @@ def _cmd_compress(args: Any) -> int:
         raise UsageError(f"--anchor: no such checkpoint {args.anchor!r}")
     if os.path.abspath(args.out) == os.path.abspath(anchor):
         raise UsageError("--out: must differ from --anchor (the anchor is the teacher of every round)")
+    check_out_path(args.out, "--out", folder=False)
     for name in ("features_dim", "worlds", "epochs", "max_agents", "scenarios"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')}: must be a positive integer, got {getattr(args, name)}")

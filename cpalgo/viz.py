@@ -395,11 +395,12 @@ def write_search_files(model: Any, checkpoint: str | os.PathLike, figure: str = 
     """Save ``model``'s kept searches beside ``checkpoint`` (``<name>.searches.npz``) and
     draw the latest verified one to ``figure`` in the checkpoint's folder (skipped, with a
     note, when matplotlib is not installed). Returns ``{"searches": ..., "figure": ...}``
-    for what was written; empty when the model kept no search."""
+    for what was written. A counterfactual run that kept no search still gets its (empty)
+    search file, so ``counterplay searches`` can say so; other models get nothing (``{}``)."""
     from cpalgo.counterplay.records import save_records, search_records
 
     records = search_records(model)
-    if not len(records):
+    if not len(records) and not (getattr(model, "counterfactual", False) and getattr(model, "keep_searches", 0)):
         return {}
     checkpoint = Path(checkpoint)
     files = {"searches": str(save_records(records, checkpoint))}

@@ -643,14 +643,22 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
 def record_episode(env: Any, path: str | os.PathLike | None = None,
                    policy: Callable[[Any], Any] | None = None, *, seed: int | None = None,
                    max_steps: int = 1000, fps: float = 10.0) -> list[np.ndarray]:
-    """Run one episode of a Gymnasium env with ``render_mode="rgb_array"`` and keep its frames.
+    """Run one episode of an env with ``render_mode="rgb_array"`` and keep its frames.
 
+    ``env`` is a Gymnasium env (``cpsim/Drive-v0``) or a Stable-Baselines3 VecEnv such as
+    :class:`cpsim.SelfPlayVecEnv` (its frame tiles its first ``render_worlds`` worlds; the
+    episode is the simulator's ``episode_steps`` decisions, as its worlds reset on their own).
     ``policy(obs) -> action`` (default: random actions from the action space, seeded by
-    ``seed``). Writes the frames with :func:`write_video` when ``path`` is given.
+    ``seed``; for a VecEnv one action per env index). Writes the frames with
+    :func:`write_video` when ``path`` is given.
     Returns the list of frames ((H, W, 3) uint8), the reset frame included.
     """
     if getattr(env, "render_mode", None) != "rgb_array":
         raise ValueError("env: record_episode needs an env made with render_mode='rgb_array'")
+    from stable_baselines3.common.vec_env import VecEnv
+
+    if isinstance(env, VecEnv):
+        return _record_vec_episode(env, path, policy, seed=seed, max_steps=max_steps, fps=fps)
     obs, _ = env.reset(seed=seed)
     if policy is None:
         env.action_space.seed(seed)
@@ -660,6 +668,28 @@ def record_episode(env: Any, path: str | os.PathLike | None = None,
         obs, _, terminated, truncated, _ = env.step(policy(obs))
         frames.append(env.render())
         if terminated or truncated:
+            break
+    if path is not None:
+        write_video(frames, path, fps=fps)
+    return frames
+
+
+def _record_vec_episode(env: Any, path: str | os.PathLike | None, policy: Callable[[Any], Any] | None, *,
+                        seed: int | None, max_steps: int, fps: float) -> list[np.ndarray]:
+    """:func:`record_episode` for a VecEnv (4-tuple ``step``, ``seed`` before ``reset``)."""
+    if seed is not None:
+        env.seed(seed)
+    obs = env.reset()
+    if policy is None:
+        env.action_space.seed(seed)
+        policy = lambda _obs: np.array([env.action_space.sample() for _ in range(env.num_envs)])  # noqa: E731
+    sim = getattr(env, "sim", None)
+    steps = min(int(max_steps), int(sim.config.episode_steps)) if sim is not None else int(max_steps)
+    frames = [env.render()]
+    for _ in range(steps):
+        obs, _, dones, _ = env.step(policy(obs))
+        frames.append(env.render())
+        if sim is None and bool(np.all(dones)):
             break
     if path is not None:
         write_video(frames, path, fps=fps)

@@ -205,6 +205,14 @@ class CounterPlay(RecurrentPPO):
             self.window = tuple(self.window)
         if isinstance(self.deploy_condition, (list, tuple)):
             self.deploy_condition = tuple(float(x) for x in self.deploy_condition)
+        for name in ("n_steps", "n_epochs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name}: must be a whole number >= 1, got {value!r}")
+        if self.batch_size is not None and (isinstance(self.batch_size, bool)
+                                            or not isinstance(self.batch_size, (int, np.integer))
+                                            or self.batch_size < 1):
+            raise ValueError(f"batch_size: must be a whole number >= 1 or None, got {self.batch_size!r}")
         self._search_settings()  # validates the search arguments
         self._deploy_raw = resolve_condition(self.deploy_condition, "deploy_condition")
         if self.distill not in DISTILL_MODES:

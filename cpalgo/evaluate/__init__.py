@@ -20,6 +20,7 @@ _LAZY = {
     "evaluate": "cpalgo.evaluate.runner",
     "EvalConfig": "cpalgo.evaluate.runner",
     "EvalResult": "cpalgo.evaluate.runner",
+    "Evaluator": "cpalgo.evaluate.runner",
     "REGIMES": "cpalgo.evaluate.runner",
     "make_tasks": "cpalgo.evaluate.runner",
     "Task": "cpalgo.evaluate.runner",

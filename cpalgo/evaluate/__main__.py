@@ -111,6 +111,11 @@ def run(argv: Sequence[str] | None = None) -> dict:
     deploy = _parse_deploy(args.deploy)
     if args.n < 1:
         raise ValueError(f"--n: must be >= 1, got {args.n}")
+    if args.seed < 0:
+        raise ValueError(f"--seed: must be >= 0, got {args.seed}")
+    if args.pool_size is not None and args.pool_size < args.n:
+        raise ValueError(f"--pool-size: must be >= --n ({args.n}: each split takes --n tasks of the pool), "
+                         f"got {args.pool_size}")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {out} exists and is not a folder")

@@ -134,6 +134,12 @@ def make_tasks(pool: str | os.PathLike | Sequence[Any] = "procedural", split: st
 
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n: expected a positive integer, got {n!r}")
+    if pool_size is not None and (isinstance(pool_size, bool) or not isinstance(pool_size, (int, np.integer))
+                                  or pool_size < int(n)):
+        raise ValueError(f"pool_size: expected a whole number >= n ({n}: each split takes n tasks of the pool), "
+                         f"got {pool_size!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: expected a whole number >= 0, got {seed!r}")
     names = resolve_split(split)
     folder = False
     if isinstance(pool, (str, os.PathLike)):

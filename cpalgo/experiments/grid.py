@@ -242,7 +242,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     Raises :class:`GridError` naming the file and the key (see the module docstring).
     """
     from cpalgo.evaluate.runner import REGIMES, resolve_regime, resolve_split
-    from cpalgo.methods import GROUPS, check_settings, get_method, method_names  # noqa: F401
+    from cpalgo.methods import GROUPS, check_settings, check_values, get_method, method_names  # noqa: F401
     from cpsim.conditions import resolve_condition
 
     if isinstance(source, Mapping):
@@ -343,6 +343,24 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         for reserved in ("seed", "post_budget", "device", "verbose", "policy", "env"):
             if reserved in method_settings.get(name, {}) or reserved in overrides:
                 raise _fail(where, f"overrides.{reserved}", "is set by the grid itself (seeds, budget, device)")
+        try:  # values, before any run starts (the algorithm's own checks, no env or network)
+            check_values(name, merged, recipe.policy)
+        except (TypeError, ValueError) as exc:
+            bad_key, _, why = str(exc).partition(": ")
+            key = f"method_settings.{name}.{bad_key}" if bad_key in method_settings.get(name, {}) else (
+                f"overrides.{bad_key}" if bad_key in overrides else f"recipe ({recipe_path}): {bad_key}")
+            raise _fail(where, key, f"{why or exc} (method {name!r})") from None
+    from cpsim.envs.selfplay import check_selfplay_arguments
+
+    try:
+        check_selfplay_arguments(**{**recipe.env_kwargs, **env})
+    except ValueError as exc:
+        bad_key, _, why = str(exc).partition(": ")
+        if getattr(exc, "field", None):  # a ScenarioError names its field apart
+            bad_key, why = exc.field, exc.reason
+        field = bad_key.removeprefix("SimConfig.")
+        key = f"env.{field}" if field in env else f"recipe ({recipe_path}): env_kwargs.{field}"
+        raise _fail(where, key, why or str(exc)) from None
 
     checkpoint_every = _whole(doc.get("checkpoint_every", 2), where, "checkpoint_every", 1)
     torch_threads = _whole(doc.get("torch_threads", 1), where, "torch_threads", 1)

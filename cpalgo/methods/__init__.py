@@ -48,7 +48,7 @@ from typing import Any, Mapping
 
 __all__ = [
     "MethodSpec", "register", "get_method", "method_names", "describe_methods", "build_method",
-    "check_settings", "algorithm_parameters", "GROUPS", "METHOD_MODULES",
+    "check_settings", "check_values", "check_algorithm_values", "algorithm_parameters", "GROUPS", "METHOD_MODULES",
 ]
 
 #: Table groups, in table order.
@@ -176,6 +176,21 @@ def check_settings(name: str, settings: Mapping[str, Any], argument: str = "sett
         raise ValueError(f"{argument}: unknown setting {unknown[0]!r} for method {name!r}; accepted: {sorted(known)}")
 
 
+def check_algorithm_values(cls: type, settings: Mapping[str, Any], policy: str = "MlpLstmPolicy") -> None:
+    """``ValueError`` (or ``TypeError`` for an unknown name) when the SB3 algorithm ``cls``
+    rejects one of ``settings``, found without an env or a network: ``cls`` is constructed
+    with ``env=None`` and no model, which runs its argument checks only. CounterPlay's
+    messages start with the setting's name (``rho: must lie in [0, 1], got 7.5``)."""
+    cls(policy, None, _init_setup_model=False, **settings)
+
+
+def check_values(name: str, settings: Mapping[str, Any], policy: str = "MlpLstmPolicy") -> None:
+    """:func:`check_algorithm_values` for method ``name`` (its registry settings under
+    ``settings``). Check names first with :func:`check_settings`."""
+    spec = get_method(name)
+    check_algorithm_values(spec.resolve(), {**spec.settings, **settings}, policy)
+
+
 def build_method(name: str, anchor: str | os.PathLike, env: Any, *, policy: str = "MlpLstmPolicy",
                  algo_kwargs: Mapping[str, Any] | None = None, settings: Mapping[str, Any] | None = None,
                  budget: int | None = None, seed: int = 0, device: str = "cpu", verbose: int = 0) -> Any:
@@ -201,7 +216,9 @@ def build_method(name: str, anchor: str | os.PathLike, env: Any, *, policy: str 
         if int(budget) <= 0:
             raise ValueError(f"budget: must be > 0, got {budget!r}")
         kwargs["post_budget"] = int(budget)
-    anchor = str(anchor)
+    from cpalgo.recipes import resolve_path
+
+    anchor = resolve_path(anchor)  # zoo/anchor.zip names the shipped file from any folder
     if not os.path.isfile(anchor):
         raise ValueError(f"anchor: no such checkpoint {anchor!r}")
     model = cls(policy, env, seed=seed, device=device, verbose=verbose, **kwargs)

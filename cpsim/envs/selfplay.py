@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 from typing import Any, Iterable, Sequence
 
 import gymnasium
@@ -73,6 +74,50 @@ def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_
     if num_scenarios is not None:
         out = out[: int(num_scenarios)]
     return out
+
+
+def check_selfplay_arguments(*, num_worlds: Any = None, max_agents: Any = None, family: Any = None,
+                             womd_dir: Any = None, num_scenarios: Any = None, dynamics: Any = None,
+                             condition: Any = "train", config: Any = None, render_mode: Any = None,
+                             timeout_terminal: Any = False, eval_task_share: Any = 0.0, panel_share: Any = 0.0,
+                             **config_overrides: Any) -> None:
+    """Check :class:`SelfPlayVecEnv` arguments without building anything (no scenarios, no
+    simulator): ``ValueError`` whose message starts with the bad argument's name (a missing
+    ``womd_dir`` is a :class:`cpsim.ScenarioError`, whose ``field`` names it). Grids and
+    commands call it before they start work; the constructor runs the same checks."""
+    from cpsim import scenario as scen_mod
+    from cpsim.config import SimConfig
+
+    for name, value in (("num_worlds", num_worlds), ("max_agents", max_agents), ("num_scenarios", num_scenarios)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
+            raise ValueError(f"{name}: must be a whole number >= 1, got {value!r}")
+    if family is not None and family not in scen_mod.FAMILIES:
+        raise ValueError(f"family: unknown procedural family {family!r}; accepted: {list(scen_mod.FAMILIES)}")
+    if womd_dir is not None and not os.path.isdir(str(womd_dir)):
+        from cpsim.scenario.datatypes import ScenarioError
+
+        raise ScenarioError(str(womd_dir), "womd_dir", "folder does not exist")
+    if render_mode not in (None, "rgb_array", "human"):
+        raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array', 'human']")
+    fixed = not (isinstance(condition, str) and condition in CONDITION_MODES)
+    if fixed:
+        resolve_condition(condition, "condition")
+    if not isinstance(timeout_terminal, (bool, np.bool_)):
+        raise ValueError(f"timeout_terminal: expected a bool, got {timeout_terminal!r}")
+    for name, value, reason in (("eval_task_share", eval_task_share, "a fixed condition already has its task fields"),
+                                ("panel_share", panel_share, "a fixed condition already has its style fields")):
+        share = float(value) if isinstance(value, (int, float, np.number)) and not isinstance(value, bool) \
+            else float("nan")
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
+        if share > 0.0 and fixed:
+            raise ValueError(f"{name}: only applies to condition='train' ({reason})")
+    base = SimConfig.from_dict(config) if not isinstance(config, SimConfig) else config
+    changes = dict(config_overrides)
+    if dynamics is not None:
+        changes["dynamics"] = dynamics
+    if changes:
+        base.replace(**changes)
 
 
 def make_simulator(scenarios: list, num_worlds: int, max_agents: int, *, dynamics: str | None = None,
@@ -198,8 +243,10 @@ class SelfPlayVecEnv(VecEnv):
                  render_worlds: int = 4, timeout_terminal: bool = False, eval_task_share: float = 0.0,
                  panel_share: float = 0.0,
                  **config_overrides: Any):
-        if render_mode not in (None, "rgb_array", "human"):
-            raise ValueError(f"render_mode: unsupported {render_mode!r}; accepted: [None, 'rgb_array', 'human']")
+        check_selfplay_arguments(num_worlds=num_worlds, max_agents=max_agents, family=family, womd_dir=womd_dir,
+                                 num_scenarios=num_scenarios, dynamics=dynamics, condition=condition, config=config,
+                                 render_mode=render_mode, timeout_terminal=timeout_terminal,
+                                 eval_task_share=eval_task_share, panel_share=panel_share, **config_overrides)
         self.scenarios = resolve_scenarios(scenarios, family=family, womd_dir=womd_dir,
                                            num_scenarios=num_scenarios, seed=seed)
         self.sim = make_simulator(self.scenarios, num_worlds, max_agents, dynamics=dynamics, config=config,
@@ -474,4 +521,5 @@ class SelfPlayVecNormalize(VecNormalize):
 
 
 __all__ = ["SelfPlayVecEnv", "SelfPlayVecNormalize", "OUTCOME_NAMES", "resolve_scenarios", "make_simulator",
+           "check_selfplay_arguments",
            "observation_space_for", "copy_obs", "OBS_BOUND"]

@@ -967,6 +967,8 @@ def generate(family: str, seed: int) -> Scenario:
 
 
 def _pool_seeds(n: int, seed: int, seed_range: tuple[int, int], salt: int) -> np.ndarray:
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
     lo, hi = seed_range
     span = hi - lo
     if n > span:

@@ -256,9 +256,38 @@ def test_outcomes_command_evaluates_the_tracking_expert(capsys, tmp_path):
     (["run", "--timesteps", "0"], "must be >= 1"),
     (["outcomes", "--model", "nope.zip", "--tasks", "1"], "does not exist"),
     (["train-anchor", "--init", "nope.zip"], "no such file 'nope.zip'"),
+    (["pool", "--seed", "-1", "--n", "2"], "--seed: must be >= 0"),
 ])
 def test_cli_errors_exit_2_without_a_traceback(capsys, argv, message):
     assert message in usage_error(capsys, argv)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("  rho: 0.5", "  rhoo: 0.5"), "'rhoo' is not an argument of CounterPlay"),
+    (("  rho: 0.5", "  rho: 7.5"), "rho: must lie in [0, 1], got 7.5"),
+    (("  n_steps: 96", "  n_steps: 0"), "n_steps: must be a whole number >= 1"),
+    (("  batch_size: 4096", "  batch_size: -1"), "batch_size: must be a whole number >= 1"),
+    (("    num_scenarios: 192", "    num_scenarios: -3"), "env_kwargs: num_scenarios: must be a whole number >= 1"),
+])
+def test_post_train_rejects_bad_recipe_values_before_writing_anything(capsys, tmp_path, edit, message):
+    recipe = tmp_path / "bad.yml"
+    text = Path(resolve_path("zoo/counterplay.yml")).read_text()
+    assert edit[0] in text
+    recipe.write_text(text.replace(edit[0], edit[1]))
+    out = tmp_path / "out"
+    error = usage_error(capsys, ["post-train", "--config", str(recipe), "--out", str(out), "--timesteps", "10"])
+    assert message in error and str(recipe) in error
+    assert not out.exists()
+
+
+def test_out_paths_below_a_file_fail_up_front(capsys, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    for argv in (["outcomes", "--tasks", "1", "--out", str(blocker / "x.json")],
+                 ["train-anchor", "--timesteps", "10", "--out", str(blocker / "a.zip")],
+                 ["post-train", "--timesteps", "10", "--out", str(blocker)]):
+        assert "--out:" in usage_error(capsys, argv)
+    assert cli.check_out_path(tmp_path / "new" / "deeper", "--out", folder=True) == tmp_path / "new" / "deeper"
 
 
 def test_console_script_errors_and_version(tmp_path):

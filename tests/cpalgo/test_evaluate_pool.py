@@ -30,6 +30,16 @@ def test_make_tasks_on_a_womd_folder_uses_the_folder_splits(tmp_path: Path) -> N
     assert len(R.make_tasks(str(folder), "random", 50)) == len(R.make_tasks(folder, "interactive", 50)) == 7
 
 
+def test_make_tasks_rejects_a_pool_smaller_than_n_and_a_negative_seed() -> None:
+    with pytest.raises(ValueError, match="pool_size: expected a whole number >= n"):
+        R.make_tasks("procedural", "random", 3, pool_size=1)
+    with pytest.raises(ValueError, match="seed: expected a whole number >= 0"):
+        R.make_tasks("procedural", "random", 3, seed=-1)
+    from cpalgo.evaluate import Evaluator  # the README's import
+
+    assert Evaluator is R.Evaluator
+
+
 def test_evaluator_simulates_each_ego_of_a_scene(tmp_path: Path) -> None:
     folder = womd_folder(tmp_path / "womd")
     tasks = R.make_tasks(folder, "interactive", 7)

@@ -79,6 +79,13 @@ def grid_doc(files, **changes):
     ({"env": {"num_wheels": 3}}, "env.num_wheels"),
     ({"seeds": [0, 0]}, "seeds: lists a seed twice"),
     ({"evaluation": {"coplayers": "everyone"}}, "evaluation.coplayers: expected 'vehicles' or 'controllable'"),
+    # values, not only names, are checked before any run (the algorithm's and the env's own checks)
+    ({"env": {"num_scenarios": -3}}, "env.num_scenarios: must be a whole number >= 1"),
+    ({"env": {"panel_share": 1.5}}, "env.panel_share: expected a number in [0, 1]"),
+    ({"overrides": {"batch_size": 0}}, "overrides.batch_size: must be a whole number >= 1"),
+    ({"overrides": {"rho": 3}}, "overrides.rho: must lie in [0, 1]"),
+    ({"methods": ["counterplay"], "method_settings": {"counterplay": {"window": [60, 5]}}},
+     "method_settings.counterplay.window"),
 ])
 def test_bad_grids_fail_before_anything_runs_naming_the_key(files, tmp_path, change, message):
     doc = grid_doc(files)

@@ -89,6 +89,13 @@ def test_registering_a_method_is_one_line_and_checked():
         methods_module._REGISTRY.pop("test-ppo-fast", None)
 
 
+def test_build_method_finds_the_shipped_anchor_from_any_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no zoo/ here: zoo/anchor.zip names the file shipped in the package
+    env = SelfPlayVecEnv(num_worlds=1, max_agents=2, num_scenarios=1)
+    model = build_method("ppo-continue", "zoo/anchor.zip", env, algo_kwargs={"n_steps": 8, "batch_size": 8})
+    assert model.policy.lstm_actor.hidden_size == 128  # the anchor's network, weights loaded
+
+
 def test_build_method_rejects_bad_input(anchor, tmp_path):
     env = make_env()  # every check fails before the env is used, so one env serves them all
     with pytest.raises(ValueError, match="settings: unknown setting 'opponent_fractoin'"):

@@ -340,3 +340,12 @@ def test_the_main_job_writes_the_figure_of_a_verified_search(kept, tmp_path):
     assert len(load_records(files["searches"])) == len(records)
     assert cli._write_searches(model, tmp_path / "counterplay.zip")["figure"] == str(tmp_path / "search.png")
     assert write_search_files(make_model(keep_searches=0), tmp_path / "none.zip") == {}
+
+
+def test_a_counterfactual_run_that_kept_no_search_still_gets_its_search_file(tmp_path, capsys):
+    model = make_model()  # nothing learned yet: no search kept
+    files = write_search_files(model, tmp_path / "counterplay.zip")
+    assert files == {"searches": str(tmp_path / "counterplay.searches.npz")} and load_records(files["searches"]) == []
+    capsys.readouterr()
+    assert cli.main(["searches", "--model", str(tmp_path / "counterplay.zip")]) == 0
+    assert "0 searches kept" in capsys.readouterr().out

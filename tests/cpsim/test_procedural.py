@@ -59,6 +59,8 @@ def test_families_listed_and_unknown_family_raises():
         proc.generate("merge", -1)
     with pytest.raises(ValueError, match="seed"):
         proc.generate("merge", 1.5)
+    with pytest.raises(ValueError, match="seed: expected a non-negative integer"):
+        proc.pool(2, seed=-1)
 
 
 def test_metadata(scenes):

@@ -153,6 +153,16 @@ def test_write_video_bad_input(tmp_path):
     assert not (tmp_path / "a.gif").exists()
 
 
+def test_record_episode_records_a_selfplay_vec_env(tmp_path):
+    import cpsim
+
+    env = cpsim.SelfPlayVecEnv(num_worlds=1, max_agents=2, num_scenarios=1, render_mode="rgb_array",
+                               episode_steps=3)
+    frames = record_episode(env, tmp_path / "e.gif", seed=0)
+    assert len(frames) == 4 and frames[0].ndim == 3 and frames[0].dtype == np.uint8  # reset + 3 decisions
+    assert (tmp_path / "e.gif").stat().st_size > 0
+
+
 def test_record_episode_needs_rgb_array():
     class _Env:
         render_mode = None
