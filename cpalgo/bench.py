@@ -90,7 +90,7 @@ def _make(name: str, env: Any, common: dict[str, Any]) -> Any:
 def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, generations: int = 3,
                         batch_size: int = 4096, n_epochs: int = 3, anchor: str | None = None,
                         learners: tuple[str, ...] = LEARNERS, seed: int = 0, threads: int | None = None,
-                        init_weights: bool = True) -> dict[str, Any]:
+                        init_weights: bool = True, device: str = "cpu") -> dict[str, Any]:
     """Time the learners; returns a JSON-able summary (see the module docstring).
 
     Args:
@@ -99,8 +99,15 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
         anchor: checkpoint whose network (and, with ``init_weights``, weights) every
             learner uses; default the shipped anchor.
         threads: torch intra-op threads (None: leave torch's choice).
+        device: ``"cpu"`` or ``"cuda[:n]"``: simulator, policy, rollout buffer and branch
+            search of every learner on that device.
     """
     from cpsim import SelfPlayVecEnv
+
+    if device != "cpu" and not str(device).startswith("cuda"):
+        raise ValueError(f"device: expected 'cpu' or 'cuda[:n]', got {device!r}")
+    if str(device).startswith("cuda") and not th.cuda.is_available():
+        raise ValueError(f"device: {device!r} requested but torch sees no CUDA device")
 
     unknown = [n for n in learners if n not in LEARNERS]
     if unknown:
@@ -108,16 +115,16 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
     if threads is not None:
         th.set_num_threads(int(threads))
     policy_kwargs = _anchor_network(anchor)
-    common = dict(n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs, seed=seed, device="cpu",
+    common = dict(n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs, seed=seed, device=device,
                   policy_kwargs=policy_kwargs)
     models: dict[str, Any] = {}
     for name in learners:
-        env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed)
+        env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed, device=device)
         model = _make(name, env, common)
         if init_weights:
             from cpalgo.recipes import shipped_path
 
-            model.set_parameters(anchor or str(shipped_path("anchor.zip")), exact_match=False, device="cpu")
+            model.set_parameters(anchor or str(shipped_path("anchor.zip")), exact_match=False, device=device)
         models[name] = model
     writers = {name: _attach_memory_logger(m) for name, m in models.items()}
     n_envs = worlds * agents
@@ -148,7 +155,7 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
 
     out: dict[str, Any] = {
         "worlds": worlds, "agents": agents, "slots": n_envs, "n_steps": n_steps, "batch_size": batch_size,
-        "n_epochs": n_epochs, "generations": generations, "torch_threads": th.get_num_threads(),
+        "n_epochs": n_epochs, "generations": generations, "torch_threads": th.get_num_threads(), "device": device,
         "network": repr(policy_kwargs), "learners": {},
     }
     slot_steps = n_steps * n_envs
@@ -196,6 +203,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="also write the JSON summary here")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:n] (simulator, learners and search)")
     parser.add_argument("--same-learning", type=int, default=0, metavar="GENERATIONS",
                         help="instead: post-train the anchor with the stock and the fast learner for this many "
                              "generations each and compare held-out outcome rates")
@@ -211,7 +219,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     try:
         result = run_learn_benchmark(args.worlds, args.agents, args.n_steps, args.generations, args.batch_size,
-                                     args.epochs, args.anchor, learners, args.seed, args.threads)
+                                     args.epochs, args.anchor, learners, args.seed, args.threads,
+                                     device=args.device)
     except ValueError as exc:
         parser.error(str(exc))
     _emit(json.dumps(result, indent=2), args.out)
