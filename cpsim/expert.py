@@ -68,6 +68,7 @@ class TrackingExpert:
     """
 
     def __init__(self, sim, gains: TrackingGains | None = None) -> None:
+        _check_sim(sim)
         self.sim = sim
         self.gains = gains or TrackingGains()
         m = sim.model.arrays
@@ -530,6 +531,13 @@ REACTIVE_STYLE_V7 = dataclasses.replace(REACTIVE_STYLE_V6, goal_brake=1.5)
 _VERSIONED_STYLES = {"reactive-v1": REACTIVE_STYLE_V1, "reactive-v2": REACTIVE_STYLE_V2,
                      "reactive-v4": REACTIVE_STYLE_V4, "reactive-v5": REACTIVE_STYLE_V5,
                      "reactive-v6": REACTIVE_STYLE_V6, "reactive-v7": REACTIVE_STYLE_V7}
+
+
+def _check_sim(sim) -> None:
+    from cpsim.simulator import Simulator
+
+    if not isinstance(sim, Simulator):
+        raise ValueError(f"sim: an expert drives a cpsim.Simulator (an env's .sim), got {type(sim).__name__}")
 
 
 def make_expert(name: str, sim, **kwargs):

@@ -152,8 +152,8 @@ class Simulator:
         for name, value in (("num_worlds", num_worlds), ("max_agents", max_agents)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name}: must be a positive integer, got {value!r}")
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-            raise ValueError(f"seed: must be an integer, got {seed!r}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed: must be an integer >= 0, got {seed!r}")
         self.config = config if isinstance(config, SimConfig) else SimConfig.from_dict(config)
         wp.init()
         try:

@@ -165,6 +165,13 @@ class CounterPlay(RecurrentPPO):
             policy_kwargs=deepcopy(ANCHOR_NETWORK) if policy_kwargs is None else policy_kwargs,
             _init_setup_model=False, **ppo_kwargs,
         )
+        for name, flag in (("counterfactual", counterfactual), ("shared_randomness", shared_randomness),
+                           ("style_change", style_change), ("verify", verify), ("mask_inactive", mask_inactive)):
+            if not isinstance(flag, (bool, np.bool_)):  # bool("no") is True: take no chances with a switch
+                raise ValueError(f"{name}: expected True or False, got {flag!r}")
+        for name, seq in (("window", window), ("panel", panel)):
+            if not isinstance(seq, (str, Sequence, np.ndarray)):
+                raise ValueError(f"{name}: expected a sequence, got {seq!r}")
         self.counterfactual = bool(counterfactual)
         self.root_interval = root_interval
         self.window = tuple(window) if not isinstance(window, str) else window
@@ -205,6 +212,17 @@ class CounterPlay(RecurrentPPO):
             self.window = tuple(self.window)
         if isinstance(self.deploy_condition, (list, tuple)):
             self.deploy_condition = tuple(float(x) for x in self.deploy_condition)
+        for name, integer, optional in (("rho", False, False), ("root_interval", True, False),
+                                        ("fixed_depth", True, False), ("distill_coef", False, False),
+                                        ("distill_minibatches", True, False), ("branch_cap", False, False),
+                                        ("post_budget", False, True), ("max_searches", True, True)):
+            value = getattr(self, name)
+            if value is None and optional:
+                continue
+            kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
+            if isinstance(value, bool) or not isinstance(value, kinds):
+                raise ValueError(f"{name}: expected {'a whole number' if integer else 'a number'}"
+                                 f"{' or None' if optional else ''}, got {value!r}")
         for name in ("n_steps", "n_epochs"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:

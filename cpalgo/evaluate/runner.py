@@ -26,7 +26,7 @@ replay         expert log replay
 aggressive     ``traffic_policy`` under the aggressive profile
 normal         ``traffic_policy`` under the normal profile
 cautious       ``traffic_policy`` under the cautious profile
-mix            ``traffic_policy``, each co-player draws one of the three profiles
+mix            ``traffic_policy``, the three profiles rotating over the co-players
 ============== ===================================================================
 
 ``static`` (co-players stand still) is accepted as an extra regime.
@@ -284,7 +284,13 @@ class FunctionEgo(EgoPolicy):
         self.checkpoint = getattr(fn, "__name__", "callable")
 
     def act(self, obs: np.ndarray, episode_start: np.ndarray) -> np.ndarray:
-        return np.asarray(self.fn(obs)).reshape(-1).astype(np.int64)
+        out = np.asarray(self.fn(obs))
+        if out.size != obs.shape[0] or not (np.issubdtype(out.dtype, np.integer)
+                                            or (np.issubdtype(out.dtype, np.floating)
+                                                and np.all(out == np.round(out)))):
+            raise ValueError(f"policy: the callable {self.checkpoint!r} must return {obs.shape[0]} integer "
+                             f"actions (one per observation row), got {out.dtype} of shape {out.shape}")
+        return out.reshape(-1).astype(np.int64)
 
 
 def load_model(path: str | os.PathLike, argument: str = "policy") -> Any:
@@ -510,7 +516,7 @@ class Evaluator:
         self.tasks = list(tasks)
         if not self.tasks:
             raise ValueError("tasks: empty; nothing to evaluate")
-        self.regimes = [resolve_regime(r) for r in regimes]
+        self.regimes = [resolve_regime(r) for r in ((regimes,) if isinstance(regimes, str) else regimes)]
         if not self.regimes:
             raise ValueError("regimes: empty; give at least one regime")
         if len(set(self.regimes)) != len(self.regimes):

@@ -45,6 +45,10 @@ class DriveCore:
                  coplayer_model: Any = None, coplayer_condition: str | Sequence[float] | None = None,
                  deterministic_coplayers: bool = True, seed: int | None = None, max_agents: int = 32,
                  config: Any = None, device: str = "cpu", **config_overrides: Any):
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+            raise ValueError(f"seed: must be None or a whole number >= 0, got {seed!r}")
+        if not isinstance(deterministic_coplayers, (bool, np.bool_)):
+            raise ValueError(f"deterministic_coplayers: expected a bool, got {deterministic_coplayers!r}")
         # regime first: a bad name fails before any scenario is generated or compiled
         self.driver = TrafficDriver(regime, coplayer_model, condition=coplayer_condition,
                                     deterministic=deterministic_coplayers, seed=seed, ego_slot=EGO_SLOT)
@@ -108,6 +112,8 @@ class DriveCore:
 
     def check_actions(self, actions: Any) -> np.ndarray:
         a = np.asarray(actions)
+        if not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+            raise ValueError(f"action: expected integer action(s), got {actions!r}")
         if a.size != self.num_worlds:
             raise ValueError(f"action: expected {self.num_worlds} action(s), got shape {a.shape}")
         a = a.reshape(self.num_worlds)

@@ -76,9 +76,10 @@ def resolve_scenarios(scenarios: Any = None, *, family: str | None = None, womd_
     return out
 
 
-def check_selfplay_arguments(*, num_worlds: Any = None, max_agents: Any = None, family: Any = None,
-                             womd_dir: Any = None, num_scenarios: Any = None, dynamics: Any = None,
-                             condition: Any = "train", config: Any = None, render_mode: Any = None,
+def check_selfplay_arguments(*, scenarios: Any = None, num_worlds: Any = None, max_agents: Any = None,
+                             family: Any = None, womd_dir: Any = None, num_scenarios: Any = None,
+                             dynamics: Any = None, condition: Any = "train", seed: Any = 0, config: Any = None,
+                             device: Any = "cpu", render_mode: Any = None, render_worlds: Any = 4,
                              timeout_terminal: Any = False, eval_task_share: Any = 0.0, panel_share: Any = 0.0,
                              **config_overrides: Any) -> None:
     """Check :class:`SelfPlayVecEnv` arguments without building anything (no scenarios, no
@@ -88,9 +89,17 @@ def check_selfplay_arguments(*, num_worlds: Any = None, max_agents: Any = None, 
     from cpsim import scenario as scen_mod
     from cpsim.config import SimConfig
 
-    for name, value in (("num_worlds", num_worlds), ("max_agents", max_agents), ("num_scenarios", num_scenarios)):
+    for name, value in (("num_worlds", num_worlds), ("max_agents", max_agents), ("num_scenarios", num_scenarios),
+                        ("render_worlds", render_worlds)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
             raise ValueError(f"{name}: must be a whole number >= 1, got {value!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: must be a whole number >= 0, got {seed!r}")
+    if not (str(device) == "cpu" or str(device).startswith("cuda")):
+        raise ValueError(f"device: expected 'cpu' or 'cuda[:n]', got {device!r}")
+    if scenarios is not None and isinstance(scenarios, (str, bytes)):
+        raise ValueError(f"scenarios: expected a list of Scenario objects, got a string {scenarios!r} "
+                         "(a folder of WOMD files goes to womd_dir)")
     if family is not None and family not in scen_mod.FAMILIES:
         raise ValueError(f"family: unknown procedural family {family!r}; accepted: {list(scen_mod.FAMILIES)}")
     if womd_dir is not None and not os.path.isdir(str(womd_dir)):
@@ -243,10 +252,12 @@ class SelfPlayVecEnv(VecEnv):
                  render_worlds: int = 4, timeout_terminal: bool = False, eval_task_share: float = 0.0,
                  panel_share: float = 0.0,
                  **config_overrides: Any):
-        check_selfplay_arguments(num_worlds=num_worlds, max_agents=max_agents, family=family, womd_dir=womd_dir,
-                                 num_scenarios=num_scenarios, dynamics=dynamics, condition=condition, config=config,
-                                 render_mode=render_mode, timeout_terminal=timeout_terminal,
-                                 eval_task_share=eval_task_share, panel_share=panel_share, **config_overrides)
+        check_selfplay_arguments(scenarios=scenarios, num_worlds=num_worlds, max_agents=max_agents, family=family,
+                                 womd_dir=womd_dir, num_scenarios=num_scenarios, dynamics=dynamics,
+                                 condition=condition, seed=seed, config=config, device=device,
+                                 render_mode=render_mode, render_worlds=render_worlds,
+                                 timeout_terminal=timeout_terminal, eval_task_share=eval_task_share,
+                                 panel_share=panel_share, **config_overrides)
         self.scenarios = resolve_scenarios(scenarios, family=family, womd_dir=womd_dir,
                                            num_scenarios=num_scenarios, seed=seed)
         self.sim = make_simulator(self.scenarios, num_worlds, max_agents, dynamics=dynamics, config=config,

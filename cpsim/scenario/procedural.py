@@ -980,7 +980,7 @@ def _pool_seeds(n: int, seed: int, seed_range: tuple[int, int], salt: int) -> np
 def _check_pool_args(n: int, families: tuple[str, ...] | list[str] | None) -> tuple[str, ...]:
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 0:
         raise ValueError(f"n must be a non-negative integer, got {n!r}")
-    fams = FAMILIES if families is None else tuple(families)
+    fams = FAMILIES if families is None else (families,) if isinstance(families, str) else tuple(families)
     if not fams:
         raise ValueError("families must not be empty")
     for f in fams:

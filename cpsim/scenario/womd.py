@@ -797,6 +797,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     bench.add_argument("folder")
     bench.add_argument("--repeat", type=int, default=7)
     args = parser.parse_args(argv)
+    folder = args.src if args.command == "convert" else args.folder
+    if not Path(folder).is_dir():  # one error line, exit status 2, as for any bad argument
+        parser.error(f"{'src' if args.command == 'convert' else 'folder'}: no such folder {folder!r}")
     if args.command == "convert":
         report = convert_dir(args.src, args.dst, overwrite=args.overwrite)
         print(report.summary())

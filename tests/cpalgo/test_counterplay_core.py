@@ -93,12 +93,28 @@ def test_buffer_mask_marks_inactive_and_revived_slots():
         ({"selection": "best"}, "selection"),
         ({"distill": "mse"}, "distill"),
         ({"distill_minibatches": 0}, "distill_minibatches"),
+        # wrong types name the argument too; a switch is a bool (bool("no") would be True)
+        ({"verify": "yes"}, "verify: expected True or False"),
+        ({"shared_randomness": 2}, "shared_randomness: expected True or False"),
+        ({"rho": "x"}, "rho: expected a number"),
+        ({"root_interval": None}, "root_interval: expected a whole number"),
+        ({"branch_cap": None}, "branch_cap: expected a number"),
+        ({"window": None}, "window: expected a sequence"),
+        ({"panel": 5}, "panel: expected a sequence"),
+        ({"n_steps": 0}, "n_steps: must be a whole number >= 1"),
+        ({"batch_size": -1}, "batch_size: must be a whole number >= 1"),
     ],
 )
 def test_bad_arguments_raise_value_error_naming_them(kwargs, name):
     env = make_vec_env("CartPole-v1", n_envs=1, seed=0)
     with pytest.raises(ValueError, match=name):
-        CounterPlay("MlpLstmPolicy", env, counterfactual=False, **kwargs, **SMALL)
+        CounterPlay("MlpLstmPolicy", env, counterfactual=False, **{**SMALL, **kwargs})
+
+
+def test_counterfactual_must_be_a_bool():
+    env = make_vec_env("CartPole-v1", n_envs=1, seed=0)
+    with pytest.raises(ValueError, match="counterfactual: expected True or False"):
+        CounterPlay("MlpLstmPolicy", env, counterfactual="no", **SMALL)
 
 
 def test_counterfactual_needs_a_branching_env():

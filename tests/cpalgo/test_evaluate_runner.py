@@ -180,6 +180,9 @@ def test_policy_ego_batched_over_regimes(tasks):
 def test_bad_inputs(tasks, tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="unknown regime"):
         R.Evaluator(tasks, ["replay", "rush-hour"])
+    assert R.Evaluator(tasks[:1], "idm").regimes == ["idm"]  # one name, not its letters
+    with pytest.raises(ValueError, match="must return 1 integer actions"):
+        R.Evaluator(tasks[:1], ["idm"], config=R.EvalConfig(progress=False)).run(lambda obs: np.zeros(3))
     # without the shipped anchor, the policy regimes need an explicit co-player policy
     monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATH", tmp_path / "no-anchor.zip")
     with pytest.raises(ValueError, match="traffic_policy"):

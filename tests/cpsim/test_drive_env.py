@@ -249,6 +249,8 @@ def test_bad_input(scenarios):
         make(scenarios, family="intersection")
     with pytest.raises(ValueError, match="condition applies"):
         TrafficDriver("idm", condition="normal")
+    with pytest.raises(ValueError, match="seed"):
+        make(scenarios, seed=-1)
     env = make(scenarios)
     env.reset(seed=0)
     with pytest.raises(ValueError, match="accepted: 0..11"):

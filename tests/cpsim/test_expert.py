@@ -247,6 +247,8 @@ def test_reactive_v1_is_the_first_style_and_the_cli_knows_every_teacher():
 def test_expert_names_and_style_are_validated():
     with pytest.raises(ValueError, match="unknown expert 'idm'"):
         make_expert("idm", None)
+    with pytest.raises(ValueError, match="sim: an expert drives a cpsim.Simulator"):
+        make_expert("tracking", None)
     with pytest.raises(ValueError, match="schedule"):
         ReactiveStyle(schedule=(0.0, 1.0))
     with pytest.raises(ValueError, match="curve_lat_accel"):

@@ -61,6 +61,7 @@ def test_families_listed_and_unknown_family_raises():
         proc.generate("merge", 1.5)
     with pytest.raises(ValueError, match="seed: expected a non-negative integer"):
         proc.pool(2, seed=-1)
+    assert {s.family for s in proc.pool(2, families="merge")} == {"merge"}  # one name, not its letters
 
 
 def test_metadata(scenes):

@@ -227,6 +227,23 @@ def test_bad_construction(scenarios):
         SelfPlayVecEnv(scenarios, num_worlds=1, max_agents=2, not_a_setting=3)
     with pytest.raises(ValueError, match="family"):
         SelfPlayVecEnv(family="highway", num_worlds=1, max_agents=2)
+    with pytest.raises(ValueError, match="seed: must be a whole number >= 0"):
+        SelfPlayVecEnv(scenarios, num_worlds=1, max_agents=2, seed=-1)
+    with pytest.raises(ValueError, match="render_worlds"):
+        SelfPlayVecEnv(scenarios, num_worlds=1, max_agents=2, render_mode="rgb_array", render_worlds=0)
+
+
+def test_argument_check_accepts_every_constructor_argument():
+    import inspect
+
+    from cpsim.envs.selfplay import SelfPlayVecEnv, check_selfplay_arguments
+
+    checked = set(inspect.signature(check_selfplay_arguments).parameters) - {"config_overrides"}
+    taken = set(inspect.signature(SelfPlayVecEnv.__init__).parameters) - {"self", "config_overrides"}
+    assert checked == taken  # a recipe or grid may set any of them
+    check_selfplay_arguments(seed=3, device="cpu", render_worlds=2, condition="normal", episode_steps=20)
+    with pytest.raises(ValueError, match="panel_share: only applies to condition='train'"):
+        check_selfplay_arguments(condition="normal", panel_share=0.5)
 
 
 def test_fixed_condition_is_applied(scenarios):

@@ -145,7 +145,8 @@ def test_bad_input_raises_and_leaves_state_unchanged(sim, argument, call):
 def test_constructor_rejects_bad_arguments():
     pool = small_pool(1)
     for kwargs, arg in (({"num_worlds": 0}, "num_worlds"), ({"max_agents": 1.5}, "max_agents"),
-                        ({"config": {"bogus": 1}}, "bogus"), ({"device": "tpu:9"}, "device")):
+                        ({"config": {"bogus": 1}}, "bogus"), ({"device": "tpu:9"}, "device"),
+                        ({"seed": -1}, "seed: must be an integer >= 0")):
         full = {"num_worlds": 1, "max_agents": 2, **kwargs}
         with pytest.raises(ValueError, match=arg):
             cpsim.Simulator(pool, **full)

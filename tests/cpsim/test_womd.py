@@ -442,9 +442,14 @@ def test_load_dir_skips_duplicate_ids_and_loads_bare_npz(tmp_path: Path) -> None
     assert report.loaded == [str(folder / "x.json"), str(folder / "z.npz")]
 
 
-def test_load_dir_errors(tmp_path: Path) -> None:
+def test_load_dir_errors(tmp_path: Path, capsys) -> None:
     with pytest.raises(ScenarioError, match="folder does not exist"):
         load_dir(tmp_path / "missing")
+    from cpsim.scenario.womd import main
+
+    with pytest.raises(SystemExit) as exit_info:  # the command: one error line, exit status 2
+        main(["convert", str(tmp_path / "missing"), str(tmp_path / "out")])
+    assert exit_info.value.code == 2 and "src: no such folder" in capsys.readouterr().err
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "readme.md").write_text("x")
