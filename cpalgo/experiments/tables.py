@@ -154,7 +154,9 @@ def collect_results(out: str | os.PathLike, grid: GridConfig) -> GridResults:
                 s = M.summarize({k: np.asarray(cols[k])[m] for k in _SUMMARY_SOURCES if k in cols})
                 res.summary[(method, seed, deployment, split, regime)] = s
                 per_regime.append(s)
-            if per_regime:
+            # the regime mean only when every regime of the grid was evaluated: a mean over
+            # fewer regimes would not be comparable with the other rows
+            if per_regime and len(per_regime) == len(grid.evaluation.regimes):
                 keys = [k for k in per_regime[0] if k != "n"]
                 mean = {k: float(np.mean([p[k] for p in per_regime])) for k in keys}
                 mean["n"] = sum(int(p["n"]) for p in per_regime)
@@ -173,10 +175,11 @@ def _mean_std(values: Sequence[float]) -> tuple[float, float]:
 def _cell(values: Sequence[float], scale: float = 1.0, decimals: int = 1) -> str:
     if not values:
         return "-"
-    m, s = _mean_std([scale * x for x in values])
+    finite = [scale * x for x in values if x is not None and math.isfinite(x)]
+    m, s = _mean_std(finite)
     if not math.isfinite(m):
         return "-"
-    return f"{m:.{decimals}f}" + (f" ± {s:.{decimals}f}" if len(values) > 1 else "")
+    return f"{m:.{decimals}f}" + (f" ± {s:.{decimals}f}" if len(finite) > 1 else "")
 
 
 def _table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
@@ -292,7 +295,9 @@ def _table_iii(res: GridResults, lines: list[str]) -> None:
                                      for n, _ in REPAIR_CLASSES)]]
         for method in methods:
             vals = _repair_values(res, method, dep, split)
-            if vals is None:
+            if vals is None:  # said in the table, not dropped silently
+                rows.append([res.label(method) + " (tasks differ from the anchor's: no repair analysis)",
+                             *("-" for _ in REPAIR_CLASSES)])
                 continue
             rows.append([res.label(method), *(_cell(vals[n], 100.0) for n, _ in REPAIR_CLASSES)])
         lines += [f"### {split.capitalize()} split ({int(m.sum())} task-regimes)", ""] + _table(header, rows)
@@ -462,7 +467,8 @@ def markdown_report(res: GridResults, extra: str = "") -> str:
              f"- evaluation: {e.tasks} tasks per split ({', '.join(e.splits)}), regimes {', '.join(e.regimes)}, "
              f"pool {e.pool} (seed {e.seed}); deployments " + "; ".join(
                  f"{d}: {len(ms)} policies" for d, ms in e.deployments.items()),
-             f"- {n_done} of {len(g.methods) * len(g.seeds)} runs evaluated", ""]
+             f"- {n_done} of {len(g.methods) * len(g.seeds)} runs evaluated",
+             "- a ± b: mean and sample standard deviation (n − 1) over the seeds that have the run", ""]
     if g.description:
         lines += [g.description.strip(), ""]
     if extra:

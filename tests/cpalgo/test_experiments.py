@@ -254,9 +254,22 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     assert "| CounterPlay − PPO-Continue, interactive: >= +5 points | +47.50" in md
     assert "timeouts repaired, interactive: CounterPlay >= 30%, PPO-Continue <= 10% | 75.0% vs 0.0% | yes |" in md
     assert "full method highest, cp-no-style lowest of the variants | highest counterplay (47.50), lowest cp-no-style" in md
+    assert "sample standard deviation (n − 1)" in md  # 57.5 ± 31.8 is the n − 1 std of 80 and 35
     csv_rows = results_csv(res).splitlines()
     assert csv_rows[0].startswith("method,seed,split,regime,deployment,n_tasks,score,completion_pct")
     assert "counterplay,1,interactive,replay,normal,2,35.0000,50.0000,0.0000,0.0000,50.0000,0.0000,0.0000" in csv_rows
+
+    # a run evaluated on other tasks than the anchor is named in Table III, not dropped; a run
+    # missing a regime gets no regime mean (it would not compare with the others)
+    other = _columns(sr, [1, 1, 1, 1], [0] * 4, [0] * 4, [0] * 4, [50] * 4)
+    other["ego"] = np.asarray(other["ego"]) + 1
+    put("ppo-continue", 0, "normal", other)
+    idm_only = {k: np.asarray(v)[:2] for k, v in _columns(sr, [1] * 4, [0] * 4, [0] * 4, [0] * 4, [60] * 4).items()}
+    put("cp-no-style", 1, "normal", idm_only)
+    res = collect_results(out, grid)
+    md = markdown_report(res)
+    assert "| PPO-Continue (tasks differ from the anchor's: no repair analysis) | - |" in md
+    assert res.values("cp-no-style", "normal", "interactive", "mean", "score") == [5.0]  # seed 1 has no mean
 
 
 # ----------------------------------------------------------------------------- Ray
