@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any, Callable
 
 __all__ = ["add_commands", "cmd_experiment", "cmd_methods", "cmd_main_job"]
@@ -32,6 +33,9 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     except GridError as exc:
         _usage_error(args, str(exc))
         return 2
+    except KeyboardInterrupt:  # finished runs and the last checkpoints stay; a rerun resumes
+        print(f"\ninterrupted; run the same command again to resume from {args.out}", file=sys.stderr)
+        return 130
     return 0 if result.ok else 1
 
 
@@ -47,6 +51,9 @@ def cmd_main_job(args: argparse.Namespace) -> int:
     except ValueError as exc:
         _usage_error(args, str(exc))
         return 2
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; run the same command again to resume from {args.out}", file=sys.stderr)
+        return 130
     print(summary["markdown"])
     print(f"written to {args.out} ({summary['wall_s'] / 60:.1f} min)")
     return 0

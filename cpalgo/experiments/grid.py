@@ -173,6 +173,7 @@ class GridConfig:
         anchor = Path(self.anchor)
         return {
             "anchor": str(anchor.resolve()), "anchor_bytes": anchor.stat().st_size,
+            "anchor_weights_sha1": _weights_sha1(anchor),
             "recipe_sha1": hashlib.sha1(Path(self.recipe).read_bytes()).hexdigest(),
             "budget": self.budget, "overrides": _jsonable(self.overrides), "env": _jsonable(self.env),
             "worlds": self.worlds, "method_settings": _jsonable(self.method_settings),
@@ -184,6 +185,18 @@ class GridConfig:
 
     def as_dict(self) -> dict[str, Any]:
         return _jsonable(dataclasses.asdict(self))
+
+
+def _weights_sha1(path: Path) -> str:
+    """SHA-1 of a checkpoint's weights (its ``policy.pth``; the whole file when it has none):
+    another anchor at the same path must not resume this grid's runs, a re-saved copy may."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return hashlib.sha1(archive.read("policy.pth")).hexdigest()
+    except (KeyError, zipfile.BadZipFile, OSError):
+        return hashlib.sha1(path.read_bytes()).hexdigest()
 
 
 def _jsonable(x: Any) -> Any:
@@ -234,6 +247,21 @@ def _existing(value: Any, where: str, key: str, base: Path, what: str) -> str:
     raise _fail(where, key, f"no such {what} {str(value)!r}")
 
 
+def _checkpoint(path: str, where: str, key: str) -> str:
+    """An SB3 checkpoint (a zip holding ``policy.pth``), not merely a file that exists."""
+    import zipfile
+
+    if not path.endswith(".zip"):
+        return path  # other policy kinds (a BC ``.pt``) are checked where they are loaded
+    try:
+        with zipfile.ZipFile(path) as archive:
+            if "policy.pth" in archive.namelist():
+                return path
+    except (zipfile.BadZipFile, OSError):
+        pass
+    raise _fail(where, key, f"{path} is not an SB3 checkpoint (a .zip with policy.pth)")
+
+
 def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | os.PathLike | None = None) -> GridConfig:
     """Read and validate a grid (a YAML path, ``zoo/experiments/...``, or a mapping).
 
@@ -281,7 +309,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     if len(set(names)) != len(names):
         raise _fail(where, "methods", "lists a method twice")
     budget = _whole(doc["budget"], where, "budget", 1)
-    anchor = _existing(doc["anchor"], where, "anchor", base, "checkpoint")
+    anchor = _checkpoint(_existing(doc["anchor"], where, "anchor", base, "checkpoint"), where, "anchor")
     recipe_path = _existing(doc.get("recipe", "zoo/counterplay.yml"), where, "recipe", base, "recipe")
     from cpalgo.recipes import load_recipe
 
@@ -425,9 +453,10 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
             raise _fail(where, "evaluation.pool", f"neither 'procedural' nor a folder: {pool!r}")
         pool = pool_path
     pool_size = ev.get("pool_size")
-    pool_size = None if pool_size is None else _whole(pool_size, where, "evaluation.pool_size", 1)
+    pool_size = None if pool_size is None else _whole(pool_size, where, "evaluation.pool_size", tasks)
     traffic = ev.get("traffic_policy")
-    traffic = None if traffic is None else _existing(traffic, where, "evaluation.traffic_policy", base, "checkpoint")
+    traffic = None if traffic is None else _checkpoint(
+        _existing(traffic, where, "evaluation.traffic_policy", base, "checkpoint"), where, "evaluation.traffic_policy")
     bc = ev.get("bc_policy")
     bc = None if bc is None else _existing(bc, where, "evaluation.bc_policy", base, "checkpoint")
     max_agents = ev.get("max_agents")
@@ -440,6 +469,11 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         bad = sorted(set(sim_config) - sim_fields)
         if bad:
             raise _fail(where, f"evaluation.sim_config.{bad[0]}", "not a SimConfig field")
+        try:
+            SimConfig.from_dict(sim_config)
+        except ValueError as exc:
+            field, _, why = str(exc).partition(": ")
+            raise _fail(where, f"evaluation.sim_config.{field.removeprefix('SimConfig.')}", why or str(exc)) from None
     evaluation = EvalSettings(
         tasks=tasks, splits=tuple(splits), regimes=regimes, deployments=deployments, pool=pool,
         pool_size=pool_size, seed=_whole(ev.get("seed", 0), where, "evaluation.seed", 0),

@@ -81,8 +81,16 @@ def _check_out(grid: GridConfig, out: Path) -> None:
     """``out`` must be new, or hold runs of a grid whose runs are the same."""
     if out.exists() and not out.is_dir():
         raise GridError(f"out: {out} exists and is not a folder")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise GridError(f"out: {parent} is a file, so {out} cannot be created")
+            break
     saved = out / "grid.json"
     if not saved.is_file():
+        if (out / "runs").is_dir() and any((out / "runs").iterdir()):
+            raise GridError(f"out: {out} holds runs but no grid.json (the record of the grid that made them); "
+                            "use another --out")
         return
     try:
         previous = json.loads(saved.read_text())["fingerprint"]
@@ -90,7 +98,9 @@ def _check_out(grid: GridConfig, out: Path) -> None:
         raise GridError(f"out: {saved} is not a grid record; use another --out") from None
     current = grid.run_fingerprint()
     for key in current:
-        if key == "anchor_bytes":
+        # the size may change when the same weights are re-saved; the weights' hash decides
+        # (a record older than the hash has none, and keeps resuming)
+        if key == "anchor_bytes" or (key == "anchor_weights_sha1" and key not in previous):
             continue
         if previous.get(key) != current[key]:
             raise GridError(f"out: {out} holds runs of another grid ({key} differs); use another --out "

@@ -25,6 +25,7 @@ import os
 import sys
 import time
 import traceback
+import zipfile
 from pathlib import Path
 from typing import Any, Callable
 
@@ -75,11 +76,20 @@ def _eval_file(folder: Path, deployment: str) -> Path:
     return folder / f"eval_{deployment}.npz"
 
 
+def _readable(path: Path) -> bool:
+    """An evaluation file that exists and opens (a truncated one is redone, not trusted)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return "score" in data.files
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+        return False
+
+
 def run_status(grid: GridConfig, out: str | os.PathLike, spec: RunSpec) -> str:
     """``done`` (trained and every evaluation written), ``evaluate`` (trained, evaluations
-    missing), ``resume`` (a checkpoint to continue from) or ``new``."""
+    missing or unreadable), ``resume`` (a checkpoint to continue from) or ``new``."""
     folder = run_dir(out, spec)
-    evals_done = all(_eval_file(folder, d).is_file() for d in grid.evaluation.deployments_of(spec.method))
+    evals_done = all(_readable(_eval_file(folder, d)) for d in grid.evaluation.deployments_of(spec.method))
     if spec.method == ANCHOR:
         return "done" if evals_done else "evaluate"
     if (folder / "train.json").is_file() and (folder / "model.zip").is_file():
@@ -194,6 +204,27 @@ def _progress_callback(grid: GridConfig, spec: RunSpec, folder: Path, echo: Echo
     return RunProgress()
 
 
+def _readable_checkpoint(folder: Path, spec: RunSpec, echo: Echo | None) -> dict[str, Any] | None:
+    """The budget state of the run's checkpoint, or None when there is none. A checkpoint that
+    does not open (a truncated zip, a broken JSON) is moved aside as ``checkpoint.corrupt.*``
+    and the run starts over from the anchor, with a line that says so."""
+    zip_path, json_path = folder / "checkpoint.zip", folder / "checkpoint.json"
+    if not (zip_path.is_file() and json_path.is_file()):
+        return None
+    try:
+        state = json.loads(json_path.read_text())
+        with zipfile.ZipFile(zip_path) as archive:
+            if "policy.pth" not in archive.namelist() or archive.testzip() is not None:
+                raise zipfile.BadZipFile("no intact policy.pth")
+        return state
+    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+        for path in (zip_path, json_path):
+            path.replace(path.with_name(f"checkpoint.corrupt{path.suffix}"))
+        if echo is not None:
+            echo(f"[{spec.key}] checkpoint {zip_path} does not open ({exc}); moved aside, starting over")
+        return None
+
+
 def train_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: Echo | None = _echo) -> dict[str, Any]:
     """Post-train one (method, seed) to the grid's budget (resuming from its checkpoint when
     there is one); writes ``model.zip`` and ``train.json`` and returns the summary."""
@@ -207,8 +238,8 @@ def train_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: Ech
     model = build_run_model(grid, spec.method, int(spec.seed))
     wall_before = 0.0
     resumed_from = None
-    if (folder / "checkpoint.zip").is_file() and (folder / "checkpoint.json").is_file():
-        state = json.loads((folder / "checkpoint.json").read_text())
+    state = _readable_checkpoint(folder, spec, echo)
+    if state is not None:
         model.set_parameters(str(folder / "checkpoint.zip"), exact_match=True, device=grid.device)
         if hasattr(model, "apply_legacy_settings"):  # a checkpoint older than a setting keeps its behaviour
             model.apply_legacy_settings(str(folder / "checkpoint.zip"))
@@ -281,8 +312,13 @@ def _npz_bytes(columns: dict[str, np.ndarray]) -> bytes:
 
 
 def load_columns(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
-        return {k: data[k] for k in data.files}
+    """The evaluator columns of an ``eval_<deployment>.npz``; ``ValueError`` naming the file
+    when it does not open (rerunning the grid evaluates it again)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise ValueError(f"{path}: unreadable evaluation file ({exc}); rerun the grid to evaluate it again") from None
 
 
 # ----------------------------------------------------------------------------- one task
@@ -304,6 +340,8 @@ def execute_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: E
             return payload
         model: Any = None
         if spec.method != ANCHOR and status in ("new", "resume"):
+            for deployment in grid.evaluation.deployments_of(spec.method):  # they evaluated another model
+                _eval_file(folder, deployment).unlink(missing_ok=True)
             train_run(grid, spec, out, echo)
         if spec.method != ANCHOR:
             model = str(folder / "model.zip")
@@ -313,7 +351,7 @@ def execute_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: E
             model = grid.anchor
         for deployment in grid.evaluation.deployments_of(spec.method):
             target = _eval_file(folder, deployment)
-            if not target.is_file():
+            if not _readable(target):
                 te = time.perf_counter()
                 columns = evaluate_columns(grid, model, deployment, spec.method)
                 write_bytes_atomic(target, _npz_bytes(columns))
@@ -323,6 +361,7 @@ def execute_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: E
                          f"({time.perf_counter() - te:.0f} s)")
             rel = target.relative_to(Path(out))
             payload["files"][str(rel)] = target.read_bytes()
+        (folder / "error.txt").unlink(missing_ok=True)  # an earlier failure's traceback no longer applies
     except Exception as exc:  # noqa: BLE001 - one failed run must not stop the grid
         payload["status"] = "failed"
         payload["error"] = f"{type(exc).__name__}: {exc}"

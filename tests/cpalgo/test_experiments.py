@@ -3,12 +3,14 @@ main job, on tiny settings (2 worlds x 4 slots, LSTM 16, one or two evaluation t
 
 from __future__ import annotations
 
+import io
 import json
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
@@ -102,6 +104,71 @@ def test_bad_grids_fail_before_anything_runs_naming_the_key(files, tmp_path, cha
     text = str(info.value)
     assert message in text and text.startswith(str(path)) and "\n" not in text
     assert not out.exists()  # nothing ran, nothing was written
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"evaluation": {"sim_config": {"episode_steps": -5}}}, "evaluation.sim_config.episode_steps"),
+    ({"evaluation": {"tasks": 3, "pool_size": 1}}, "evaluation.pool_size: must be >= 3"),
+])
+def test_bad_grid_values_fail_before_anything_runs(files, tmp_path, change, message):
+    doc = grid_doc(files)
+    doc["evaluation"] = {**doc["evaluation"], **change["evaluation"]}
+    with pytest.raises(GridError, match=message):
+        load_grid(doc)
+    junk = tmp_path / "anchor.zip"
+    junk.write_text("not a checkpoint")
+    with pytest.raises(GridError, match="anchor: .* is not an SB3 checkpoint"):
+        load_grid(grid_doc(files, anchor=str(junk)))
+
+
+def test_damaged_run_folders_are_redone_or_refused(files, tmp_path):
+    """Without training: an unreadable evaluation is redone, a corrupt checkpoint is moved
+    aside (the run starts over), runs without their grid record or from another anchor's
+    weights are refused."""
+    import shutil
+
+    from cpalgo.experiments.runner import _check_out
+    from cpalgo.experiments.runs import _readable_checkpoint, load_columns, run_status
+
+    anchor = tmp_path / "anchor.zip"
+    shutil.copy(files["anchor"], anchor)
+    grid = load_grid(grid_doc(files, anchor=str(anchor)))
+    out = tmp_path / "out"
+    spec = RunSpec("ppo-continue", 0)
+    folder = run_dir(out, spec)
+    folder.mkdir(parents=True)
+    (folder / "train.json").write_text("{}")
+    (folder / "model.zip").write_bytes(b"weights")
+    write_bytes_atomic(folder / "eval_normal.npz", b"PK\x03\x04 truncated")
+    assert run_status(grid, out, spec) == "evaluate"  # a truncated evaluation is not trusted
+    with pytest.raises(ValueError, match="eval_normal.npz: unreadable evaluation file"):
+        load_columns(folder / "eval_normal.npz")
+    buf = io.BytesIO()
+    np.savez_compressed(buf, score=np.zeros(2))
+    write_bytes_atomic(folder / "eval_normal.npz", buf.getvalue())
+    assert run_status(grid, out, spec) == "done"
+
+    (folder / "checkpoint.zip").write_bytes(b"PK truncated")
+    (folder / "checkpoint.json").write_text('{"total": 100}')
+    lines: list[str] = []
+    assert _readable_checkpoint(folder, spec, lines.append) is None
+    assert (folder / "checkpoint.corrupt.zip").is_file() and not (folder / "checkpoint.zip").exists()
+    assert "moved aside, starting over" in lines[0]
+
+    with pytest.raises(GridError, match="holds runs but no grid.json"):
+        _check_out(grid, out)
+    write_bytes_atomic(out / "grid.json", json.dumps({"fingerprint": grid.run_fingerprint()}).encode())
+    _check_out(grid, out)  # the same grid resumes
+    other = BudgetedCounterPlay.load(files["anchor"])  # the same network, other weights, same path
+    with torch.no_grad():
+        next(other.policy.parameters()).add_(1.0)
+    other.save(anchor)
+    with pytest.raises(GridError, match="anchor_weights_sha1 differs"):
+        _check_out(load_grid(grid_doc(files, anchor=str(anchor))), out)
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(GridError, match="is a file"):
+        _check_out(grid, blocker / "out")
 
 
 def test_experiment_command_prints_one_error_line_and_exits_2(files, tmp_path):
