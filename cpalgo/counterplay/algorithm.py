@@ -672,11 +672,32 @@ class CounterPlay(RecurrentPPO):
     def _prepare_distillation(self) -> TeacherBatch | None:
         if not self._teachers or self.env is None or float(self.distill_coef) == 0.0:
             return None
-        layout = self.env.obs_layout
         return collate_teachers(
-            self._teachers, self._deploy_raw, layout.replace_condition, STYLE_MASK, device=self.device,
+            self._teachers, self._deploy_raw, self._student_condition_writer(), STYLE_MASK, device=self.device,
             policy=self.policy if self.distill == "ppo" else None, gamma=self.gamma,
         )
+
+    def _student_condition_writer(self) -> Any:
+        """``replace_condition(obs, raw_conditions)`` for the teachers' recorded observations.
+        Those are the policy's inputs: under a ``VecNormalize`` wrapper already normalised, so
+        the written condition slice gets the wrapper's normalisation too (the student then sees
+        ``w_dep`` as it would in a rollout)."""
+        layout = self.env.obs_layout
+        vec_normalize = unwrap_vec_normalize(self.env)
+        if vec_normalize is None or not vec_normalize.norm_obs:
+            return layout.replace_condition
+        cond = layout.condition
+        mean = th.as_tensor(vec_normalize.obs_rms.mean[cond], dtype=th.float32, device=self.device)
+        scale = th.as_tensor(np.sqrt(vec_normalize.obs_rms.var[cond] + vec_normalize.epsilon), dtype=th.float32,
+                             device=self.device)
+        clip = float(vec_normalize.clip_obs)
+
+        def write(obs: th.Tensor, conditions: th.Tensor) -> th.Tensor:
+            out = th.as_tensor(layout.replace_condition(obs, conditions), dtype=th.float32, device=self.device)
+            out[..., cond] = th.clamp((out[..., cond] - mean) / scale, -clip, clip)
+            return out
+
+        return write
 
     def train(self) -> None:
         """RecurrentPPO's update (:func:`cpalgo.common.ppo_update.run_update`) with masked

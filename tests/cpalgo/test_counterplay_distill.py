@@ -127,3 +127,27 @@ def test_distill_rejects_bad_input():
     batch = collate_teachers(make_teachers(policy, [3]), profile("normal"), replace_condition, STYLE_MASK)
     with pytest.raises(ValueError, match="distill"):
         distill_loss(policy, batch, "mse")
+
+
+def test_the_student_condition_is_normalised_like_the_policy_inputs_under_vec_normalize():
+    """Teachers record the policy's inputs: under SelfPlayVecNormalize already normalised, so
+    the student's w_dep must be written with the same normalisation as a rollout would give."""
+    pytest.importorskip("cpsim.simulator")
+    from cpalgo import CounterPlay
+    from cpsim import SelfPlayVecEnv
+    from cpsim.envs.selfplay import SelfPlayVecNormalize
+
+    env = SelfPlayVecNormalize(SelfPlayVecEnv(num_worlds=2, max_agents=3, num_scenarios=2, seed=0, episode_steps=12))
+    model = CounterPlay("MlpLstmPolicy", env, n_steps=8, batch_size=8, n_epochs=1, seed=0,
+                        policy_kwargs=dict(lstm_hidden_size=8, net_arch=[8]))
+    env.reset()
+    for _ in range(4):  # running statistics away from their start
+        env.step(np.random.default_rng(0).integers(0, env.action_space.n, env.num_envs))
+    raw = env.get_original_obs()
+    w_dep = profile("aggressive")
+    layout = env.obs_layout
+    expected = env.normalize_obs(layout.replace_condition(raw, np.broadcast_to(w_dep, (raw.shape[0], 10))))
+    got = model._student_condition_writer()(th.as_tensor(env.normalize_obs(raw)), th.as_tensor(w_dep))
+    np.testing.assert_allclose(got.numpy(), expected, atol=1e-5)
+    assert not np.allclose(expected[:, layout.condition],  # the plain writer would be wrong here
+                           layout.replace_condition(env.normalize_obs(raw), w_dep)[:, layout.condition])
