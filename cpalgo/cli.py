@@ -151,11 +151,11 @@ def check_out_path(path: str | os.PathLike, argument: str, *, folder: bool) -> P
         if not folder and out.is_dir():
             raise UsageError(f"{argument}: {str(out)!r} is a folder, not a file")
         return out
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise UsageError(f"{argument}: {str(parent)!r} is a file, so {str(out)!r} cannot be created")
-            break
+    from cpsim.atomic import blocking_file
+
+    blocker = blocking_file(out)
+    if blocker is not None:
+        raise UsageError(f"{argument}: {str(blocker)!r} is a file, so {str(out)!r} cannot be created")
     return out
 
 

@@ -330,14 +330,10 @@ def compress_checkpoint(anchor: str, out: str, features_dim: int = 128, config: 
             "config": dataclasses.asdict(cfg), "rounds": rounds, "wall_s": round(time.perf_counter() - t0, 1)}
 
 
-def _non_negative_int(text: str) -> int:
-    from cpalgo.cli import _non_negative_int as whole
-
-    return whole(text)
-
-
 def add_command(add: Callable[..., Any]) -> None:
     """Add ``compress-anchor`` with ``cpalgo.cli``'s ``add(name, help, description)``."""
+    from cpalgo.cli import _non_negative_int  # called while cpalgo.cli builds its parser
+
     p = add("compress-anchor", "convert a flat anchor into the faster encoder network",
             "Factorise the anchor's input layers into a LinearEncoder (cpalgo.encoders) of --features-dim "
             "outputs, then distill the anchor into it (cpalgo.compress.distill_policy: DAgger rounds on "

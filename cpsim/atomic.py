@@ -14,6 +14,15 @@ from pathlib import Path
 from typing import Iterator
 
 
+def blocking_file(path: str | os.PathLike) -> Path | None:
+    """The existing file among ``path``'s parents that keeps ``path`` from being created
+    (its nearest existing ancestor, when that is not a folder), else None."""
+    for parent in Path(path).parents:
+        if parent.exists():
+            return None if parent.is_dir() else parent
+    return None
+
+
 def default_mode(directory: bool = False) -> int:
     """Permissions a plain ``open`` / ``mkdir`` would give (mkstemp / mkdtemp use 0600 / 0700)."""
     mask = os.umask(0)

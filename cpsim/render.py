@@ -681,8 +681,12 @@ def _record_vec_episode(env: Any, path: str | os.PathLike | None, policy: Callab
         env.seed(seed)
     obs = env.reset()
     if policy is None:
-        env.action_space.seed(seed)
-        policy = lambda _obs: np.array([env.action_space.sample() for _ in range(env.num_envs)])  # noqa: E731
+        from gymnasium import spaces
+
+        if not isinstance(env.action_space, spaces.Discrete):
+            raise ValueError(f"policy: needed for a VecEnv whose action space is not Discrete ({env.action_space})")
+        rng = np.random.default_rng(seed)
+        policy = lambda _obs: rng.integers(0, int(env.action_space.n), env.num_envs)  # noqa: E731
     sim = getattr(env, "sim", None)
     steps = min(int(max_steps), int(sim.config.episode_steps)) if sim is not None else int(max_steps)
     frames = [env.render()]

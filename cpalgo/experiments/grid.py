@@ -360,14 +360,18 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         if name not in names:
             raise _fail(where, f"method_settings.{name}", "is not one of the grid's methods")
         method_settings[name] = _mapping(settings, where, f"method_settings.{name}")
+    def origin(method: str, setting: str) -> str:
+        """The grid key that set ``setting`` for ``method`` (its settings, then overrides, then the recipe)."""
+        if setting in method_settings.get(method, {}):
+            return f"method_settings.{method}.{setting}"
+        return f"overrides.{setting}" if setting in overrides else f"recipe ({recipe_path}): {setting}"
+
     for name in names:
         merged = {**recipe.algo_kwargs, **overrides, **method_settings.get(name, {})}
         params = algorithm_parameters(get_method(name).resolve())
         bad = sorted(set(merged) - params)
         if bad:
-            key = f"method_settings.{name}.{bad[0]}" if bad[0] in method_settings.get(name, {}) else (
-                f"overrides.{bad[0]}" if bad[0] in overrides else f"recipe ({recipe_path}): {bad[0]}")
-            raise _fail(where, key, f"not an argument of method {name!r}'s algorithm")
+            raise _fail(where, origin(name, bad[0]), f"not an argument of method {name!r}'s algorithm")
         for reserved in ("seed", "post_budget", "device", "verbose", "policy", "env"):
             if reserved in method_settings.get(name, {}) or reserved in overrides:
                 raise _fail(where, f"overrides.{reserved}", "is set by the grid itself (seeds, budget, device)")
@@ -375,9 +379,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
             check_values(name, merged, recipe.policy)
         except (TypeError, ValueError) as exc:
             bad_key, _, why = str(exc).partition(": ")
-            key = f"method_settings.{name}.{bad_key}" if bad_key in method_settings.get(name, {}) else (
-                f"overrides.{bad_key}" if bad_key in overrides else f"recipe ({recipe_path}): {bad_key}")
-            raise _fail(where, key, f"{why or exc} (method {name!r})") from None
+            raise _fail(where, origin(name, bad_key), f"{why or exc} (method {name!r})") from None
     from cpsim.envs.selfplay import check_selfplay_arguments
 
     try:

@@ -81,11 +81,11 @@ def _check_out(grid: GridConfig, out: Path) -> None:
     """``out`` must be new, or hold runs of a grid whose runs are the same."""
     if out.exists() and not out.is_dir():
         raise GridError(f"out: {out} exists and is not a folder")
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise GridError(f"out: {parent} is a file, so {out} cannot be created")
-            break
+    from cpsim.atomic import blocking_file
+
+    blocker = blocking_file(out)
+    if blocker is not None:
+        raise GridError(f"out: {blocker} is a file, so {out} cannot be created")
     saved = out / "grid.json"
     if not saved.is_file():
         if (out / "runs").is_dir() and any((out / "runs").iterdir()):

@@ -270,13 +270,9 @@ class SelfPlayVecEnv(VecEnv):
         else:
             self.fixed_condition = resolve_condition(condition, "condition")
         self.condition = condition
-        if not isinstance(timeout_terminal, (bool, np.bool_)):
-            raise ValueError(f"timeout_terminal: expected a bool, got {timeout_terminal!r}")
-        self.timeout_terminal = bool(timeout_terminal)
-        self.eval_task_share = self._condition_share("eval_task_share", eval_task_share,
-                                                     "a fixed condition already has its task fields")
-        self.panel_share = self._condition_share("panel_share", panel_share,
-                                                 "a fixed condition already has its style fields")
+        self.timeout_terminal = bool(timeout_terminal)  # values checked by check_selfplay_arguments above
+        self.eval_task_share = float(eval_task_share)
+        self.panel_share = float(panel_share)
         self.render_mode = render_mode
         self.render_worlds = int(render_worlds)
         self._renderer = None
@@ -292,15 +288,6 @@ class SelfPlayVecEnv(VecEnv):
         self._flat_index = np.arange(n)
 
     # ------------------------------------------------------------------ internals
-    def _condition_share(self, name: str, value: Any, fixed_reason: str) -> float:
-        """Validate a per-agent share of p_train draws (``eval_task_share``, ``panel_share``)."""
-        share = float(value) if isinstance(value, (int, float, np.number)) else float("nan")
-        if not 0.0 <= share <= 1.0:
-            raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
-        if share > 0.0 and self.fixed_condition is not None:
-            raise ValueError(f"{name}: only applies to condition='train' ({fixed_reason})")
-        return share
-
     def _reset_worlds(self, worlds: np.ndarray) -> None:
         """Reset ``worlds`` with a scenario and conditions drawn from this env's RNG."""
         k = worlds.size
