@@ -3,9 +3,11 @@
     python docs/results/ppo_anchor/table.py
 
 Reads ``summary_{normal,aggressive}[_seed1].csv`` (``cpalgo.evaluate`` outputs: 100 tasks per
-split, 8 regimes, the candidate as its own traffic; ``--seed 0`` and ``--seed 1``) from the
-candidate folders below and prints, per split (Interactive / Random), the normal-deployment
-score, at-fault and timeout shares and the aggressive-minus-normal completion gap.
+split, 8 regimes, the candidate as its own traffic; ``--seed 0`` and ``--seed 1``, for the
+shipped anchor also ``--seed 2`` and ``--seed 3``) from the candidate folders below and prints,
+per split (Interactive / Random), the normal-deployment score, at-fault and timeout shares and
+the aggressive-minus-normal completion gap, per task set and pooled over the first two sets
+(and, where there are more, over all of them).
 """
 import csv
 import os
@@ -14,9 +16,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 TV5 = os.path.join(HERE, "..", "teacher_v5")
 # candidate -> per task set, (folder, file-name suffix) of its summary_{deployment}{suffix}.csv
 CANDIDATES = {
-    "I9F (shipped)": [(os.path.join(TV5, "I9F"), ""), (os.path.join(TV5, "I9F_seed1"), "")],
+    "I9F (shipped)": [(os.path.join(TV5, "I9F"), ""), (os.path.join(TV5, "I9F_seed1"), ""),
+                      (os.path.join(TV5, "I9F_seed2"), ""), (os.path.join(TV5, "I9F_seed3"), "")],
     **{name: [(os.path.join(HERE, name), ""), (os.path.join(HERE, name), "_seed1")]
-       for name in ("C75", "C150", "P150", "W50", "C75_D2", "T_c2.0", "T_c0.5")},
+       for name in ("C75", "C150", "P150", "W50", "C75_D2", "T_c2.0", "T_c0.5", "G_I9F_n2.0",
+                    "G_C150_a1.3")},
 }
 REGIMES = ["idm", "selfplay", "bc", "replay", "aggressive", "normal", "cautious", "mix"]
 SPLITS = ("interactive", "random")
@@ -53,7 +57,8 @@ for name, folders in CANDIDATES.items():
             continue
         sets.append((n, a))
         print(f"| {name} | {task_set + 1} | " + " | ".join(row(n, a)) + " |")
-    if len(sets) == 2 and all(a for _, a in sets):
-        pooled_n = {k: (sets[0][0][k] + sets[1][0][k]) / 2 for k in sets[0][0]}
-        pooled_a = {k: (sets[0][1][k] + sets[1][1][k]) / 2 for k in sets[0][1]}
-        print(f"| {name} | pooled | " + " | ".join(row(pooled_n, pooled_a)) + " |")
+    for count, label in ((2, "pooled"), (4, "pooled 1-4")):
+        if len(sets) >= count and all(a for _, a in sets[:count]) and (count == 2 or len(sets) == 4):
+            pooled_n = {k: sum(n[k] for n, _ in sets[:count]) / count for k in sets[0][0]}
+            pooled_a = {k: sum(a[k] for _, a in sets[:count]) / count for k in sets[0][1]}
+            print(f"| {name} | {label} | " + " | ".join(row(pooled_n, pooled_a)) + " |")
