@@ -91,7 +91,7 @@ def select_root(
     if mode == "fixed":
         if fixed_depth is None or int(fixed_depth) <= 0:
             raise ValueError(f"fixed_depth: must be a positive integer for mode='fixed', got {fixed_depth!r}")
-        before = roots[roots < failure_step]
+        before = roots[(roots < failure_step) & (roots >= 0)]  # -1: no root (as in value mode)
         if before.size == 0:
             return None
         target = failure_step - int(fixed_depth)

@@ -151,6 +151,48 @@ def test_budget_cap_and_totals():
         Budget(post_budget=-5)
 
 
+def test_budget_allowance_floors_clamps_and_stops_at_post_budget():
+    # the cap is a floor of branch_cap x main (never above it): 0.5 x 3 = 1.5 -> 1
+    b = Budget(branch_cap=0.5)
+    b.open_allowance(3)
+    assert b.generation_allowance == 1
+    # branch work may overrun an estimate: the allowance is then 0, never negative
+    b.open_allowance(1000)
+    b.add_branch(candidate=600)
+    assert b.generation_allowance == 0 and not b.fits(1) and b.fits(0)
+    assert b.remaining is None and not b.exhausted
+    # post_budget caps the allowance too: 1000 - 800 main = 200 left < 500 allowed
+    b = Budget(branch_cap=0.5, post_budget=1000)
+    b.open_allowance(1000)
+    b.add_main(799)
+    assert b.remaining == 201 and b.generation_allowance == 201 and not b.exhausted
+    b.add_main(1)
+    assert b.remaining == 200 and b.generation_allowance == 200 and not b.exhausted
+    b.add_branch(verification=200)
+    assert b.total == 1000 and b.exhausted and b.remaining == 0 and b.generation_allowance == 0
+    b.add_main(5)  # a main rollout step may overshoot: nothing is left, not -5
+    assert b.remaining == 0 and b.generation_allowance == 0
+    assert b.as_dict()["total"] == 1005 and b.as_dict()["branch"] == 200
+    with pytest.raises(ValueError, match="post_budget"):
+        Budget(post_budget=0)
+
+
+def test_budget_generation_totals_restart_each_generation():
+    b = Budget(branch_cap=1.0)
+    b.start_generation()
+    b.add_main(100)
+    b.open_allowance(100)
+    b.add_branch(factual=10, candidate=20)
+    assert b.end_generation() == {"main": 100, "branch": 30, "cap_main": 100}
+    b.start_generation()
+    b.add_main(50)
+    b.open_allowance(50)
+    b.add_branch(candidate=5)
+    assert b.end_generation() == {"main": 50, "branch": 5, "cap_main": 50}
+    assert b.history == [{"main": 100, "branch": 30, "cap_main": 100}, {"main": 50, "branch": 5, "cap_main": 50}]
+    assert (b.main, b.branch, b.total, b.generations) == (150, 35, 185, 2)
+
+
 def test_post_budget_stops_learn():
     model = CounterPlay("MlpLstmPolicy", SlotVecEnv(0), counterfactual=False, post_budget=100, seed=0,
                         n_steps=16, batch_size=32, n_epochs=1, device="cpu",

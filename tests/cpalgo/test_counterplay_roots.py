@@ -26,6 +26,19 @@ def test_due_worlds_follow_each_worlds_own_clock():
     s = _store()
     assert s.due(np.array([0, 3, 10])).tolist() == [0, 2]
     assert s.due(np.array([90, 91, 85])).tolist() == [0, 2]  # 91 is past the last decision
+    # decision T itself is no decision (0..T-1 are): no root there, even on the interval
+    assert _store(episode_steps=90).due(np.array([90, 85, 0])).tolist() == [1, 2]
+
+
+def test_traces_restart_with_each_episode_and_clamp_at_the_end():
+    s = _store()
+    s.record_step(np.array([3, 3, 95]), np.arange(6), np.full(6, 0.25), np.arange(6) + 1)
+    # a world past its last decision writes the trace's last column, not out of range
+    assert s.actions[2, :, 91].tolist() == [5, 6] and s.values[2, 1, 91] == 5.0
+    assert s.actions[0, :, 3].tolist() == [1, 2] and s.uniforms[1, 0, 3] == 0.25
+    s.new_episodes(np.array([0]))
+    assert np.all(s.actions[0] == -1) and np.all(np.isnan(s.uniforms[0]))
+    assert s.actions[1, :, 3].tolist() == [3, 4] and s.uniforms[1, 0, 3] == 0.25  # other worlds kept
 
 
 def test_store_and_request_keep_the_right_world_and_step():
@@ -81,3 +94,33 @@ def test_unreferenced_snapshots_are_recycled_by_size():
     s.collect_garbage()
     assert s.take_free(1) is None
     assert s.take_free(2) is first and s.take_free(2) is None
+
+
+def test_drop_roots_forgets_every_root_and_keeps_pinned_snapshots():
+    class Snap:
+        def __init__(self, n):
+            self.num_worlds = n
+
+    s = _store(window_end=5)  # ring of 3
+    pi = _memory(3, 2, np.zeros(3))
+    pinned, other = Snap(2), Snap(2)
+    s.store(np.array([0, 1]), np.array([0, 0]), pinned, pi, pi, np.zeros((2, 2, 10)), np.array([2, 2]))
+    s.store(np.array([0, 1]), np.array([5, 5]), other, pi, pi, np.zeros((2, 2, 10)), np.array([2, 2]))
+    s.drop_roots(pinned=[pinned])
+    assert s.roots_of(0)[0].size == 0 and s.roots_of(1)[0].size == 0  # same episode, no root
+    assert s.snapshots == {}
+    # the pinned snapshot (a queued request still reads it) is not handed out for reuse
+    assert s.take_free(2) is other and s.take_free(2) is None
+
+
+def test_recycled_snapshots_are_bounded_by_the_ring():
+    class Snap:
+        def __init__(self, n):
+            self.num_worlds = n
+
+    s = _store(window_end=5)  # ring of 3
+    pi = _memory(3, 2, np.zeros(3))
+    for step in range(0, 30, 5):  # 6 snapshots of world 0, the ring keeps 3
+        s.store(np.array([0]), np.array([step]), Snap(1), pi, pi, np.zeros((1, 2, 10)), np.array([2]))
+    s.drop_roots()
+    assert sum(s.take_free(1) is not None for _ in range(6)) == 3

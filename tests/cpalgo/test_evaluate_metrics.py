@@ -15,6 +15,8 @@ def test_comfort_violations_counted_per_limit():
     jerk = np.array([0.0, 0.0, 5.0, 0.0, -6.0, 9.0])
     # limits are strict: exactly 3 / 5 is not a violation
     assert M.comfort_violations(a_long, a_lat, jerk).tolist() == [0, 1, 1, 0, 2, 3]
+    # every limit is on the magnitude: negative values count as well
+    assert M.comfort_violations([-3.5, 0, 0], [0, -3.5, 0], [0, 0, -5.5]).tolist() == [1, 1, 1]
     # the jerk check counts longitudinal OR lateral jerk (once per step)
     lat_jerk = np.array([6.0, 0.0, -5.0, -5.5, 6.0, 9.0])
     assert M.comfort_violations(a_long, a_lat, jerk, lat_jerk).tolist() == [1, 1, 1, 1, 2, 3]
@@ -61,6 +63,11 @@ def test_lane_segments_only_lanes_in_order():
     segs, ids = _straight_lane()
     np.testing.assert_allclose(segs, [[0, 0, 50, 0], [50, 0, 100, 0]])
     assert ids.tolist() == [0, 0]
+    # lanes of one point or none hold no segment
+    pts = np.array([[0.0, 0.0], [5.0, 0.0], [6.0, 0.0], [9.0, 9.0]])
+    segs, ids = M.lane_segments(pts, np.array([0, 0, 1, 3, 3, 4]), np.zeros(5, np.int8))
+    np.testing.assert_allclose(segs, [[5, 0, 6, 0]])
+    assert ids.tolist() == [2]
 
 
 def test_alignment_threshold_at_15_degrees():
@@ -70,6 +77,12 @@ def test_alignment_threshold_at_15_degrees():
     q = M.lane_queries(xy, headings, segs)
     assert q["aligned"].tolist() == [True, True, False, False, True]
     np.testing.assert_allclose(q["lateral_offset"], 1.0)
+    # the heading error is wrapped: 355 deg and -350 deg are 5 and 10 deg off the lane
+    q = M.lane_queries(xy[:3], np.deg2rad([355.0, -350.0, 200.0]), segs)
+    assert q["aligned"].tolist() == [True, True, False]
+    # the search radius is inclusive: exactly 4 m from the centreline is still near
+    q = M.lane_queries(np.array([[30.0, 4.0], [30.0, -4.0]]), np.zeros(2), segs)
+    assert q["segment"].tolist() == [0, 0] and q["aligned"].tolist() == [True, True]
 
 
 def test_lateral_offset_far_from_lanes_and_centering_clamp():
@@ -111,6 +124,20 @@ def test_hand_built_trajectory_end_to_end():
     assert s == pytest.approx(100 * (0.2 * (1 - 11 / 90) + 0.5 + 0.3 * 0.5))
 
 
+def test_lateral_kinematics_on_a_turn():
+    """10 m/s straight for 5 steps, then turning at 0.5 rad/s: a_lat = 5 m/s^2 from the turn
+    on, a lateral jerk of 5 / 0.1 = 50 m/s^3 at the onset, 0 elsewhere."""
+    dt, T, v = 0.1, 12, 10.0
+    heading = np.concatenate([np.zeros(5), 0.5 * dt * np.arange(1, T - 4)])
+    mid = heading[:-1] + 0.5 * np.diff(heading)
+    xy = np.concatenate([[[0.0, 0.0]], np.cumsum(v * dt * np.stack([np.cos(mid), np.sin(mid)], -1), 0)])
+    kin = M.kinematics_from_poses(xy, heading, dt)
+    np.testing.assert_allclose(kin["speed"], v, atol=1e-9)
+    np.testing.assert_allclose(kin["a_lat"], [0.0] * 5 + [5.0] * (T - 5), atol=1e-9)
+    np.testing.assert_allclose(kin["lat_jerk"], [0.0] * 5 + [50.0] + [0.0] * (T - 6), atol=1e-6)
+    np.testing.assert_allclose(kin["a_long"], 0.0, atol=1e-9)
+
+
 def test_accumulator_and_step_paths_agree():
     rng = np.random.default_rng(0)
     n, T = 64, 91
@@ -125,11 +152,22 @@ def test_accumulator_and_step_paths_agree():
         assert np.all((a[k] >= 0) & (a[k] <= 1))
 
 
+def test_accumulators_clamp_and_zero_for_tasks_never_driven():
+    # T = 2: 9 violations > 3 T clamp comfort at 0 (not -0.5); T = 0 gives 0 for all three
+    m = M.metrics_from_accumulators([2, 0], [9, 0], [1, 0], [1.0, 0.0])
+    np.testing.assert_allclose(m["comfort"], [0.0, 0.0])
+    np.testing.assert_allclose(m["lane_align"], [0.5, 0.0])
+    np.testing.assert_allclose(m["lane_center"], [0.75, 0.0])
+
+
 def test_accumulators_reject_bad_input():
     with pytest.raises(ValueError, match="aligned_steps"):
         M.metrics_from_accumulators([5], [0], [6], [0.0])
     with pytest.raises(ValueError, match="steps_alive"):
         M.metrics_from_accumulators([np.nan], [0], [0], [0.0])
+    for bad in (([-1], [0], [0], [0.0]), ([5], [-1], [0], [0.0]), ([5], [0], [-1], [0.0]), ([5], [0], [0], [-0.5])):
+        with pytest.raises(ValueError, match="non-negative"):
+            M.metrics_from_accumulators(*bad)
 
 
 # ----------------------------------------------------------------------------- score
@@ -147,6 +185,44 @@ def test_score_zero_on_any_failure_and_formula_otherwise():
     assert M.task_score(True, False, False, 1.0, 1.0, 1.0) == pytest.approx(100.0)
     with pytest.raises(ValueError, match="lane_align"):
         M.task_score(True, False, False, 1.0, 1.5, 1.0)
+    with pytest.raises(ValueError, match="comfort"):
+        M.task_score(True, False, False, -0.1, 1.0, 1.0)
+
+
+def _accumulators(**over):
+    """sim.metrics-like accumulators of 6 egos driven for 10 steps each."""
+    n = 6
+    m = {"steps_alive": np.full(n, 10), "comfort_violations": np.full(n, 3), "aligned_steps": np.full(n, 8),
+         "lateral_offset_sum": np.full(n, 5.0), "goal_step": np.full(n, -1), "first_collision_step": np.full(n, -1),
+         "first_offroad_step": np.full(n, -1), "at_fault": np.zeros(n, bool)}
+    m.update({k: np.asarray(v) for k, v in over.items()})
+    return m
+
+
+def test_episode_scores_events_from_the_accumulators():
+    e = M.episode_scores(_accumulators(
+        #               goal at 0 | goal + not-at-fault | goal + at-fault | off-road | at_fault w/o collision | timeout
+        goal_step=[0, 40, 50, -1, 30, -1],
+        first_collision_step=[-1, 20, 60, -1, -1, -1],
+        at_fault=[False, False, True, False, True, False],
+        first_offroad_step=[-1, -1, -1, 7, -1, -1],
+    ))
+    assert e["goal"].tolist() == [True, True, True, False, True, False]  # goal at decision 0 counts
+    assert e["collision"].tolist() == [False, True, True, False, False, False]
+    # at fault only with a collision: a stale at_fault flag alone is no collision
+    assert e["at_fault_collision"].tolist() == [False, False, True, False, False, False]
+    assert e["offroad"].tolist() == [False, False, False, True, False, False]
+    # a timeout has none of the events (a collision without a goal is no timeout)
+    assert e["timeout"].tolist() == [False, False, False, False, False, True]
+    c = M.episode_scores(_accumulators(first_collision_step=[5, -1, -1, -1, -1, -1]))
+    assert c["timeout"].tolist() == [False, True, True, True, True, True]
+    # comfort 1 - 3/30, lane_align 8/10, lane_center 1 - (5/10)/2
+    np.testing.assert_allclose(e["comfort"], 0.9)
+    np.testing.assert_allclose(e["lane_align"], 0.8)
+    np.testing.assert_allclose(e["lane_center"], 0.75)
+    full = 100 * (0.2 * 0.9 + 0.5 * 0.8 + 0.3 * 0.75)
+    # scored: goal without at-fault collision or off-road (a not-at-fault collision keeps the score)
+    np.testing.assert_allclose(e["score"], [full, full, 0.0, 0.0, full, 0.0])
 
 
 # ----------------------------------------------------------------------------- outcome classes
@@ -191,6 +267,8 @@ def test_repair_is_goal_without_any_collision_or_offroad_harm_apart():
     t = M.repair_table(ref, ok, harm)
     assert t["timeout"]["repaired"] == pytest.approx(2 / 6)
     assert t["timeout"]["harm"] == pytest.approx(1 / 6)   # its own column
+    # one harmed co-player is harm already
+    assert M.repair_table(ref, ok, np.array([1, 0, 0, 0, 0, 0]))["timeout"]["harm"] == pytest.approx(1 / 6)
     assert np.isnan(t["completed"]["harm"])
     with pytest.raises(ValueError, match="other_harm"):
         M.repair_table(ref, ok, harm[:3])
@@ -254,3 +332,13 @@ def test_summarize_rates():
     s = M.summarize(per)
     assert s == {"n": 4, "score": 35.0, "completion": 0.5, "at_fault_collision": 0.25,
                  "offroad": 0.25, "co_player_harm": 0.5}
+    # completion is reaching the goal (also with an at-fault collision); optional keys are kept
+    per.update(goal=np.array([1, 1, 1, 0], bool), timeout=np.array([0, 0, 0, 1], bool),
+               non_at_fault_collision=np.array([0, 0, 1, 0], bool), comfort=np.array([1.0, 0.5, 0.5, 0.0]),
+               lane_align=np.array([1.0, 1.0, 0.0, 0.0]), lane_center=np.array([0.2, 0.2, 0.2, 0.2]))
+    s = M.summarize(per)
+    assert s["completion"] == 0.75 and s["timeout"] == 0.25 and s["non_at_fault_collision"] == 0.25
+    assert s["comfort"] == 0.5 and s["lane_align"] == 0.5 and s["lane_center"] == pytest.approx(0.2)
+    # an empty group has no rates (nan), not zero rates
+    e = M.summarize({k: np.zeros(0) for k in ("score", "goal", "at_fault_collision", "offroad", "timeout")})
+    assert e["n"] == 0 and all(np.isnan(e[k]) for k in ("score", "completion", "offroad", "timeout"))

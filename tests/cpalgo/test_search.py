@@ -64,6 +64,17 @@ def test_select_root_fallback_to_earliest_when_failure_value_is_highest():
     assert select_root(values, [5, 20, 30, 40], 70) == 20
 
 
+def test_select_root_ignores_negative_root_steps():
+    # a negative step is no decision of this episode: root -5 would be 25 decisions before
+    # the failure at 20 (inside the window) and would read values[-5], i.e. values[86] = 9
+    values = _trace({15: 1.0, 20: 0.0, 86: 9.0})
+    assert select_root(values, [-5, 15], 20) == 15
+    assert select_root(values, [-5], 20) is None
+    # the fixed-depth ablation ignores them too: -1 would be nearest to 70 - 80 = -10
+    assert select_root(np.zeros(91), [-1, 30], 70, mode="fixed", fixed_depth=80) == 30
+    assert select_root(np.zeros(91), [-1], 70, mode="fixed", fixed_depth=80) is None
+
+
 def test_select_root_empty_window_returns_none():
     values = _trace({3: 1.0, 70: 0.0})
     assert select_root(values, [], 70) is None
@@ -122,6 +133,14 @@ def test_rank_key_orders_completion_then_harm_then_arrival():
     assert rank_key(True, 0, 90) > rank_key(True, 1, 10)
     assert rank_key(True, 1, 40) > rank_key(True, 1, 41)
     assert rank_key(False, 0, -1) > rank_key(False, 2, -1)
+
+
+def test_rank_key_ignores_the_arrival_of_an_incomplete_branch():
+    # an incomplete branch has no arrival time, even when a stale step is passed along
+    assert rank_key(False, 0, 30) == rank_key(False, 0, -1) == (0.0, 0.0, -np.inf)
+    assert rank_key(True, 0, -1)[2] == -np.inf
+    # so among incomplete branches a stale arrival step does not reorder them (stable)
+    assert rank_branches([False, False], [0, 0], [-1, 30]).tolist() == [0, 1]
 
 
 def test_rank_branches_best_first_and_stable():
@@ -207,6 +226,17 @@ def test_admit_ignores_the_focal_agents_own_events():
     assert admit(factual, cand)
 
 
+def test_admit_checks_vehicles_present_in_either_branch():
+    # neighbour 3 is present only in the candidate's world: it cannot have collided in the
+    # factual branch, so its collision in the candidate is new harm
+    factual = BranchOutcome(focal=0, completed=False, arrival_step=-1, first_collision_step=np.full(4, -1),
+                            first_offroad_step=np.full(4, -1), present=[True, True, True, False])
+    cand = BranchOutcome(focal=0, completed=True, arrival_step=60, first_collision_step=[-1, -1, -1, 20],
+                         first_offroad_step=np.full(4, -1))
+    assert admission_verdict(factual, cand) == "harms_other"
+    assert not verify(factual, cand)
+
+
 def test_admit_rejects_mismatched_branches():
     with pytest.raises(ValueError, match="candidate"):
         admit(_outcome(False, focal=0), _outcome(True, arrival=3, focal=1))
@@ -254,6 +284,9 @@ def test_verify_requires_a_clean_completion_of_the_focal_agent():
     # event rule keeps it driving): not a clean completion
     assert not verify(factual, _outcome(True, arrival=60, col=[30, -1, -1, -1]))
     assert not verify(factual, _outcome(True, arrival=60, off=[30, -1, -1, -1]))
+    # an event at decision 0 is an event too (-1 is the only "never")
+    assert not verify(factual, _outcome(True, arrival=60, col=[0, -1, -1, -1]))
+    assert not verify(factual, _outcome(True, arrival=60, off=[0, -1, -1, -1]))
     # an event of the focal agent in the factual rerun does not matter
     assert verify(_outcome(False, col=[50, -1, -1, -1]), _outcome(True, arrival=60))
 

@@ -13,10 +13,14 @@ from cpsim.conditions import (
     STYLE_MASK,
     TRAIN_HIGH,
     TRAIN_LOW,
+    criterion_task_fields,
     normalize_condition,
     resolve_condition,
     sample_conditions,
     validate_conditions,
+    with_eval_task,
+    with_panel_share,
+    with_panel_styles,
 )
 from cpsim.scenario import AgentType, RoadType, Scenario, ScenarioError
 
@@ -147,3 +151,50 @@ def test_condition_validation_names_field():
     with pytest.raises(ValueError, match="deploy"):
         resolve_condition([1.0, 2.0], "deploy")
     np.testing.assert_array_equal(resolve_condition("normal"), PROFILES["normal"])
+
+
+def test_normalize_condition_keeps_a_tensors_dtype():
+    torch = pytest.importorskip("torch")
+    c = sample_conditions(np.random.default_rng(1), 3)
+    for dtype in (torch.float16, torch.float64):
+        n = normalize_condition(torch.as_tensor(c, dtype=dtype))
+        assert isinstance(n, torch.Tensor) and n.dtype == dtype
+        np.testing.assert_allclose(n.double().numpy(), normalize_condition(c), atol=2e-3)
+
+
+def test_with_panel_styles_indexes_the_panel_in_order():
+    base = sample_conditions(np.random.default_rng(2), (2, len(PANEL)))
+    index = np.array([np.arange(len(PANEL)), np.arange(len(PANEL))[::-1]])
+    out = with_panel_styles(base, index)
+    assert out.shape == base.shape and out.dtype == np.float32
+    for i in range(2):
+        for j in range(len(PANEL)):
+            want = PROFILES[PANEL[index[i, j]]]
+            np.testing.assert_array_equal(out[i, j, STYLE_MASK], want[STYLE_MASK])  # PANEL[index]'s style
+            np.testing.assert_array_equal(out[i, j, ~STYLE_MASK], base[i, j, ~STYLE_MASK])  # own task
+
+
+def test_with_panel_share_draws_index_then_pick():
+    base = sample_conditions(np.random.default_rng(3), (40, 3))
+    before = base.copy()
+    out = with_panel_share(np.random.default_rng(7), base, 0.5)
+    np.testing.assert_array_equal(base, before)  # the input is not modified
+    # the documented draws, in order: a profile index per agent, then whether it takes it
+    rng = np.random.default_rng(7)
+    index = rng.integers(0, len(PANEL), size=(40, 3))
+    pick = rng.random((40, 3)) < 0.5
+    assert 0 < pick.mean() < 1
+    np.testing.assert_array_equal(out[pick], with_panel_styles(base, index)[pick])
+    np.testing.assert_array_equal(out[~pick], base[~pick])
+
+
+def test_with_eval_task_sets_task_fields_in_place():
+    base = sample_conditions(np.random.default_rng(4), (50, 2))
+    before = base.copy()
+    out = with_eval_task(np.random.default_rng(9), base, 0.5)
+    assert out is base  # in place: callers may ignore the return value
+    pick = np.random.default_rng(9).random((50, 2)) < 0.5
+    assert 0 < pick.mean() < 1
+    np.testing.assert_array_equal(base[pick][:, ~STYLE_MASK], np.broadcast_to(criterion_task_fields(), (pick.sum(), 2)))
+    np.testing.assert_array_equal(base[~pick], before[~pick])
+    np.testing.assert_array_equal(base[..., STYLE_MASK], before[..., STYLE_MASK])  # styles untouched

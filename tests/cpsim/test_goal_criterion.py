@@ -44,6 +44,7 @@ def test_deployment_condition_changes_style_fields_only():
     raw = PROFILES["normal"].copy()
     raw[FIELD_INDEX["goal_speed"]] = 3.0
     np.testing.assert_array_equal(deployment_condition(raw), conds["normal"])
+    assert raw[FIELD_INDEX["goal_speed"]] == 3.0  # the caller's vector is not modified
     with pytest.raises(ValueError, match="deploy"):
         deployment_condition("reckless", "deploy")
 
