@@ -22,6 +22,7 @@ _LAZY = {
     "FAMILIES": "cpsim.scenario.procedural",
     "train_pool": "cpsim.scenario.procedural",
     "eval_pool": "cpsim.scenario.procedural",
+    "ego_log_reaches_goal": "cpsim.scenario.procedural",
     "load": "cpsim.scenario.womd",
     "load_dir": "cpsim.scenario.womd",
     "convert_dir": "cpsim.scenario.womd",

@@ -86,7 +86,7 @@ from cpsim.scenario.geometry_utils import (
 
 __all__ = [
     "FAMILIES", "TRAIN_SEED_RANGE", "EVAL_SEED_RANGE", "EDGE_CLEARANCE", "ProceduralScene",
-    "generate", "build", "pool", "train_pool", "eval_pool", "log_collisions",
+    "generate", "build", "pool", "train_pool", "eval_pool", "log_collisions", "ego_log_reaches_goal",
 ]
 
 FAMILIES: tuple[str, ...] = ("intersection", "t_junction", "roundabout", "merge", "lane_drop", "parked")
@@ -853,7 +853,7 @@ def build(family: str, seed: int) -> ProceduralScene:
         # Prefer scenes whose expert ego clears its conflict and reaches its goal, so that
         # log replay (the "expert" regime) completes the task; a scene where it does not is
         # kept only when no such draw comes up within _CLEARING_ATTEMPTS valid scenes.
-        if _ego_log_reaches_goal(scene.scenario):
+        if ego_log_reaches_goal(scene.scenario):
             return scene
         fallback = fallback or scene
         valid_draws += 1
@@ -868,8 +868,11 @@ def build(family: str, seed: int) -> ProceduralScene:
 _CLEARING_ATTEMPTS = 12
 
 
-def _ego_log_reaches_goal(scenario: Scenario, radius: float = 2.0) -> bool:
-    """Whether the ego's logged final position lies within ``radius`` of its goal."""
+def ego_log_reaches_goal(scenario: Scenario, radius: float = 2.0) -> bool:
+    """Whether the ego's logged final position lies within ``radius`` m of its goal: log
+    replay completes the task. BehaviorBench's goals are the logs' final positions, so this
+    holds for every one of its tasks; the evaluator keeps only such procedural scenes as
+    tasks (:func:`cpalgo.evaluate.runner.make_tasks`)."""
     e = scenario.ego_index
     last = int(np.nonzero(scenario.log_valid[e])[0][-1])
     return bool(np.linalg.norm(scenario.log_xy[e, last] - scenario.goal_xy[e]) <= radius)

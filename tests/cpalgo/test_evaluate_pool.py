@@ -51,3 +51,16 @@ def test_evaluator_simulates_each_ego_of_a_scene(tmp_path: Path) -> None:
     for row, task in enumerate(tasks):  # slot 0 starts where that task's ego starts in its log
         np.testing.assert_allclose(res.trajectories[row]["xy"][0, 0], task.scenario.log_xy[task.ego, 0], atol=1e-3)
         np.testing.assert_allclose(res.trajectories[row]["goal_xy"], task.scenario.goal_xy[task.ego], atol=1e-3)
+
+
+def test_procedural_tasks_are_scenes_whose_log_reaches_its_goal() -> None:
+    # BehaviorBench's goal is the log's final position; a procedural scene whose logged ego
+    # stops short of its goal (mostly the parked family) is no task
+    from cpsim.scenario import ego_log_reaches_goal, eval_pool
+
+    pool = eval_pool(6, seed=0)  # one scene per family: the pool make_tasks draws below
+    short = {sc.id for sc in pool if not ego_log_reaches_goal(sc)}
+    assert short, "the pool should hold a scene whose log falls short, or this test checks nothing"
+    tasks = R.make_tasks("procedural", "random", 6, seed=0, pool_size=6)  # Random-6 of 6 takes all it may
+    assert {t.scenario_id for t in tasks} == {sc.id for sc in pool} - short
+    assert all(ego_log_reaches_goal(t.scenario) for t in tasks)

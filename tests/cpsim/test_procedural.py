@@ -216,7 +216,7 @@ def test_logs_continuous_and_consistent(scenes):
 
 def test_expert_ego_log_reaches_goal_in_most_scenes(scenes):
     # log replay is the "expert" traffic regime: its ego must be able to finish the task
-    reached = [proc._ego_log_reaches_goal(scene.scenario) for scene in scenes.values()]
+    reached = [proc.ego_log_reaches_goal(scene.scenario) for scene in scenes.values()]
     assert np.mean(reached) >= 0.75, reached
 
 
