@@ -251,16 +251,6 @@ def outcome_class(
     ).astype(np.int8)
 
 
-def clean_completion(goal: np.ndarray, at_fault_collision: np.ndarray, offroad: np.ndarray,
-                     co_player_harm: np.ndarray | None = None) -> np.ndarray:
-    """Completed cleanly: reached the goal, no at-fault collision, no off-road and (when
-    given) no other vehicle harmed. Not the failure-repair definition (:func:`repaired`)."""
-    ok = _as_bool(goal) & ~_as_bool(at_fault_collision) & ~_as_bool(offroad)
-    if co_player_harm is not None:
-        ok &= np.asarray(co_player_harm) == 0
-    return ok
-
-
 def repaired(goal: np.ndarray, at_fault_collision: np.ndarray, non_at_fault_collision: np.ndarray,
              offroad: np.ndarray) -> np.ndarray:
     """The seed paper's repair (Table III): the ego reaches its goal without any collision
