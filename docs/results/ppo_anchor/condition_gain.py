@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import argparse
 import io
-import os
-import tempfile
 import zipfile
 
 import numpy as np
 import torch
+from soup import write_policy_archive  # this folder (the script's own directory is on sys.path)
 
 from cpsim.conditions import PROFILES, STYLE_MASK, normalize_condition
 from cpsim.observation import ObsLayout
@@ -54,14 +53,7 @@ def condition_gain(model: str, gain: float, out: str, center: str = "normal", cr
             w_c = w[:, cols].clone()
             state[b_name] = b + (1.0 - gain) * (w_c @ c_center.to(w.dtype))
             w[:, cols] = gain * w_c
-        buf = io.BytesIO()
-        torch.save(state, buf)
-        fd, tmp = tempfile.mkstemp(suffix=".zip", dir=os.path.dirname(os.path.abspath(out)))
-        os.close(fd)
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zo:
-            for item in zm.infolist():
-                zo.writestr(item, buf.getvalue() if item.filename == "policy.pth" else zm.read(item))
-    os.replace(tmp, out)
+    write_policy_archive(model, state, out)
 
 
 if __name__ == "__main__":

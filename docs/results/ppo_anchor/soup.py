@@ -35,14 +35,24 @@ def soup(base: str, tuned: str, alpha: float, out: str) -> None:
                                  f"{base} has {tuple(tensor.shape)}")
             mixed[name] = ((1.0 - alpha) * tensor + alpha * st[name]).to(tensor.dtype) \
                 if tensor.is_floating_point() else tensor
-        buf = io.BytesIO()
-        torch.save(mixed, buf)
-        fd, tmp = tempfile.mkstemp(suffix=".zip", dir=os.path.dirname(os.path.abspath(out)))
-        os.close(fd)
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zo:
-            for item in zb.infolist():
-                zo.writestr(item, buf.getvalue() if item.filename == "policy.pth" else zb.read(item))
-    os.replace(tmp, out)
+    write_policy_archive(base, mixed, out)
+
+
+def write_policy_archive(source: str, state: dict, out: str) -> None:
+    """Write ``source``'s SB3 archive to ``out`` with ``policy.pth`` replaced by ``state``:
+    to a temporary file next to OUT, then renamed (also used by ``condition_gain.py``)."""
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    fd, tmp = tempfile.mkstemp(suffix=".zip", dir=os.path.dirname(os.path.abspath(out)))
+    os.close(fd)
+    try:
+        with zipfile.ZipFile(source) as zs, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zo:
+            for item in zs.infolist():
+                zo.writestr(item, buf.getvalue() if item.filename == "policy.pth" else zs.read(item))
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 if __name__ == "__main__":
