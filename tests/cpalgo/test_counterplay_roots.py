@@ -22,6 +22,13 @@ def _memory(w: int, a: int, value_of_world: np.ndarray) -> tuple[th.Tensor, th.T
     return x, -x
 
 
+class Snap:
+    """A stand-in snapshot: the store reads only its world count."""
+
+    def __init__(self, n):
+        self.num_worlds = n
+
+
 def test_due_worlds_follow_each_worlds_own_clock():
     s = _store()
     assert s.due(np.array([0, 3, 10])).tolist() == [0, 2]
@@ -80,10 +87,6 @@ def test_new_episode_hides_old_roots_and_garbage_collection():
 
 
 def test_unreferenced_snapshots_are_recycled_by_size():
-    class Snap:
-        def __init__(self, n):
-            self.num_worlds = n
-
     s = _store(window_end=5)  # ring of 3
     pi = _memory(3, 2, np.zeros(3))
     first = Snap(2)
@@ -97,10 +100,6 @@ def test_unreferenced_snapshots_are_recycled_by_size():
 
 
 def test_drop_roots_forgets_every_root_and_keeps_pinned_snapshots():
-    class Snap:
-        def __init__(self, n):
-            self.num_worlds = n
-
     s = _store(window_end=5)  # ring of 3
     pi = _memory(3, 2, np.zeros(3))
     pinned, other = Snap(2), Snap(2)
@@ -114,10 +113,6 @@ def test_drop_roots_forgets_every_root_and_keeps_pinned_snapshots():
 
 
 def test_recycled_snapshots_are_bounded_by_the_ring():
-    class Snap:
-        def __init__(self, n):
-            self.num_worlds = n
-
     s = _store(window_end=5)  # ring of 3
     pi = _memory(3, 2, np.zeros(3))
     for step in range(0, 30, 5):  # 6 snapshots of world 0, the ring keeps 3
