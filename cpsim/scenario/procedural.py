@@ -35,8 +35,11 @@ Families (right-hand traffic; every scene is rotated by a random angle about the
 ``parked``
     Two-way road, one lane per direction (curvature radius >= 150 m), 1-4 parked cars or
     trucks partly blocking the right lane; a bypass lane swings into the opposite lane
-    around them. Oncoming traffic has priority. Ego: the first car behind the parked
-    vehicles. Parked vehicles are agents with goal == start (not controllable).
+    around them (as far as they need). Oncoming traffic has priority. Ego: the first car behind the parked
+    vehicles; its oncoming rivals are timed to leave the bypass shortly before it gets
+    there (it waits briefly, then passes), and its task ends once it is past the last
+    parked vehicle (or where its log ends, if further). Parked vehicles are agents with
+    goal == start (not controllable).
 
 Traffic around the ego: 1-3 agents on routes that cross or join the ego's, present from
 step 0 and timed to reach the conflict at about the ego's time; the other agents use the
@@ -134,6 +137,10 @@ class _Net:
     parked: list[tuple[np.ndarray, float, float, float, int]] = dataclasses.field(default_factory=list)
     give_way: list[tuple[int, int]] = dataclasses.field(default_factory=list)   # (lane a yields to lane b)
     ego_reach: float = 25.0    # the ego's goal lies at most this far past its first conflict zone, m
+    # where the ego's task ends when that is not past its conflict zones (a point near its
+    # route, projected onto it): the parked family's bypass is one long zone, and passing it
+    # and swinging back does not fit in an episode after a wait for the oncoming car
+    ego_goal_xy: np.ndarray | None = None
 
     def lane(self, polyline: np.ndarray, level: int = 1) -> int:
         self.lanes.append(np.asarray(polyline, dtype=np.float64))
@@ -522,9 +529,15 @@ def _family_parked(rng: np.random.Generator, net: _Net) -> None:
     right_a = net.lane(frame.line(0.0, s_b0, right))
     right_mid = net.lane(frame.line(s_b0, s_b1, right))
     right_b = net.lane(frame.line(s_b1, length, right))
+    # the bypass swings out only as far as the widest parked vehicle needs (0.6 m beside a
+    # 2.1 m car): a bypass on the oncoming lane's centreline would make the two lanes
+    # equally near, and the nearest-lane metrics (lane_align, lane_center) a coin flip
+    # between them for a car that drives it exactly
+    inner = max(right - shift + 0.5 * wid for _, _, wid, shift in boxes)
+    out = float(np.clip(inner + 0.5 * 2.1 + 0.6, right + 1.0, left))
     swing = lambda s: np.where(s < 0.5 * (s_b0 + s_b1),  # noqa: E731
-                               _smooth(s, s_b0, s_b0 + taper, right, left),
-                               _smooth(s, s_b1 - taper, s_b1, left, right))
+                               _smooth(s, s_b0, s_b0 + taper, right, out),
+                               _smooth(s, s_b1 - taper, s_b1, out, right))
     bypass = frame.line(s_b0, s_b1, swing)
     bypass[0], bypass[-1] = net.lanes[right_a][-1], net.lanes[right_b][0]
     net.lanes[right_mid][0], net.lanes[right_mid][-1] = net.lanes[right_a][-1], net.lanes[right_b][0]
@@ -535,6 +548,8 @@ def _family_parked(rng: np.random.Generator, net: _Net) -> None:
     for centre_s, lng, wid, shift in boxes:
         xy = frame.at(centre_s, right - shift)[0]
         net.parked.append((xy, frame.heading_at(centre_s), lng, wid, right_mid))
+    # the ego's task ends once it is past the last parked vehicle, before it swings back
+    net.ego_goal_xy = frame.at(s_last + margin, out)[0]
     edge = width + shoulder
     net.edges.append(frame.line(0.0, length, edge, EDGE_SPACING))
     net.edges.append(frame.line(0.0, length, -edge, EDGE_SPACING))
@@ -557,6 +572,12 @@ class _FamilySpec:
     speed: tuple[float, float]       # desired speeds, m/s
     late_fraction: float             # share of traffic that enters after step 0
     moving_trucks: bool
+    # rivals are timed to leave the shared zone (not to enter it) when the ego reaches it, and
+    # no untimed rival is added: for a long shared zone (the parked family's bypass, 50-80 m
+    # of the oncoming lane) an oncoming car timed to *enter* it with the ego holds the ego
+    # back for the 6-8 s it takes to pass, and the ego's log then ends short of its goal
+    rivals_leave_first: bool = False
+    rival_eta_scale: float = 1.0     # rivals are timed to reach their meeting point at this x the ego's ETA
 
 
 _SPECS = {
@@ -565,7 +586,7 @@ _SPECS = {
     "roundabout": _FamilySpec((4, 16), (6.5, 10.0), 0.2, False),
     "merge": _FamilySpec((4, 22), (14.0, 19.5), 0.3, True),
     "lane_drop": _FamilySpec((4, 22), (10.0, 15.0), 0.3, True),
-    "parked": _FamilySpec((3, 12), (8.0, 12.0), 0.15, False),
+    "parked": _FamilySpec((3, 12), (8.0, 12.0), 0.15, False, rivals_leave_first=True, rival_eta_scale=0.6),
 }
 
 
@@ -617,6 +638,12 @@ class _Placer:
     def conflict_entry(self, route: int, other: int) -> float | None:
         hit = self.conflict_zone(route, other)
         return None if hit is None else hit[0]
+
+    def meeting_point(self, route: int, ego_route: int) -> float:
+        """Arc length on ``route`` that a rival is timed to reach with the ego: the start of
+        its conflict zone with the ego's route, or its end for ``rivals_leave_first``."""
+        zone = self.conflict_zone(route, ego_route)
+        return zone[1] if self.spec.rivals_leave_first else zone[0]
 
     def draw_size(self, route: int, allow_truck: bool) -> tuple[float, float]:
         if allow_truck and self.spec.moving_trucks and self.curvy[route] < 1.0 / 40.0 and self.rng.random() < 0.15:
@@ -678,6 +705,9 @@ class _Placer:
         exits = [self.offsets[ego_route][a] + x for a, b, x in
                  zip(self.conflicts.a, self.conflicts.b, self.conflicts.exit_a) if a in own and b not in own]
         self.ego_zone_exit = min(float(max(exits)), first_exit + net.ego_reach) if exits else entry
+        if net.ego_goal_xy is not None:     # the goal test is "5 m past ego_zone_exit"
+            poly = self.polys[ego_route]
+            self.ego_zone_exit = float(self.cum[ego_route][np.argmin(np.hypot(*(poly - net.ego_goal_xy).T))]) - 5.0
         length, width = self.draw_size(ego_route, allow_truck=False)
         s0 = max(entry - rng.uniform(3.0, 18.0) - 0.5 * length, 0.5 * length + 0.5)
         desired = rng.uniform(*self.spec.speed)
@@ -699,10 +729,10 @@ class _Placer:
         while rivals and tries < 6 and len(self.agents) < min(target, len(net.parked) + 1 + max_rivals):
             tries += 1
             r = int(rivals[int(rng.integers(len(rivals)))])
-            e_r = self.conflict_entry(r, ego_route)
+            e_r = self.meeting_point(r, ego_route)
             length, width = self.draw_size(r, allow_truck=True)
             desired = rng.uniform(*self.spec.speed)
-            dist = ego_eta * desired * rng.uniform(0.6, 1.3) + rng.uniform(-5.0, 5.0)
+            dist = ego_eta * self.spec.rival_eta_scale * desired * rng.uniform(0.6, 1.3) + rng.uniform(-5.0, 5.0)
             s_r = min(e_r - max(dist, 3.0) - 0.5 * length, e_r - 3.0 - 0.5 * length)
             if s_r < 0.5 * length + 0.5:
                 continue
@@ -716,7 +746,7 @@ class _Placer:
             if r < 0:
                 break
             length, width = self.draw_size(r, allow_truck=True)
-            hi = self.conflict_entry(r, ego_route) - 3.0 - 0.5 * length
+            hi = self.meeting_point(r, ego_route) - 3.0 - 0.5 * length
             if hi <= 0.5 * length + 0.5:
                 continue
             s_r = rng.uniform(0.5 * length + 0.5, hi)
@@ -737,7 +767,7 @@ class _Placer:
             desired = rng.uniform(*self.spec.speed)
             late = rng.random() < self.spec.late_fraction
             if r in rival_set:
-                if late or count_rivals >= max_rivals:
+                if late or count_rivals >= max_rivals or self.spec.rivals_leave_first:
                     continue
             if late and net.border[r]:
                 s_r = 0.5 * length + 0.5

@@ -58,9 +58,9 @@ def test_procedural_tasks_are_scenes_whose_log_reaches_its_goal() -> None:
     # stops short of its goal (mostly the parked family) is no task
     from cpsim.scenario import ego_log_reaches_goal, eval_pool
 
-    pool = eval_pool(6, seed=0)  # one scene per family: the pool make_tasks draws below
+    pool = eval_pool(12, seed=4)  # two scenes per family: the pool make_tasks draws below
     short = {sc.id for sc in pool if not ego_log_reaches_goal(sc)}
     assert short, "the pool should hold a scene whose log falls short, or this test checks nothing"
-    tasks = R.make_tasks("procedural", "random", 6, seed=0, pool_size=6)  # Random-6 of 6 takes all it may
+    tasks = R.make_tasks("procedural", "random", 12, seed=4, pool_size=12)  # Random-12 of 12 takes all it may
     assert {t.scenario_id for t in tasks} == {sc.id for sc in pool} - short
     assert all(ego_log_reaches_goal(t.scenario) for t in tasks)

@@ -39,9 +39,11 @@ def test_expert_brings_most_agents_to_their_goals(dynamics):
     assert outcome.size >= 40
     goal = float(np.mean(outcome == int(Outcome.GOAL)))
     offroad = float(np.mean(outcome == int(Outcome.OFFROAD)))
-    # measured on 256 held-out tasks: jerk 96 % goals, 0 % off-road
+    # measured on 256 held-out tasks: jerk 96 % goals, 0 % off-road; on 96 (eval_pool(96,
+    # seed=11), 600 agents): jerk 97.3 % / 0 %, classic 88.2 % / 8.0 % (the bicycle's tracker
+    # cuts some junction corners), so 12 scenes leave classic a few agents of slack
     assert goal >= 0.8, goal
-    assert offroad <= 0.1, offroad
+    assert offroad <= {"jerk": 0.02, "classic": 0.12}[dynamics], offroad
 
 
 def test_expert_keeps_steady_on_a_straight_log():

@@ -220,6 +220,21 @@ def test_expert_ego_log_reaches_goal_in_most_scenes(scenes):
     assert np.mean(reached) >= 0.75, reached
 
 
+def test_parked_ego_waits_for_oncoming_traffic_and_still_reaches_its_goal():
+    # the bypass is one long conflict zone with the oncoming lane: rivals timed to enter it
+    # with the ego, and a goal past the swing back, once left 16 of 20 logs short of the goal
+    scenarios = [proc.generate("parked", seed) for seed in range(10)]
+    reached = [proc.ego_log_reaches_goal(s) for s in scenarios]
+    assert np.mean(reached) >= 0.9, reached
+    # ... while the interaction stays: the logged ego slows down for an oncoming car
+    min_speed = [s.log_speed[s.ego_index][s.log_valid[s.ego_index]].min() for s in scenarios]
+    assert np.mean(np.array(min_speed) < 2.0) >= 0.5, min_speed
+    for s in scenarios:
+        e = s.ego_index
+        start = s.log_xy[e][s.log_valid[e]][0]
+        assert 15.0 < np.linalg.norm(s.goal_xy[e] - start) < 120.0
+
+
 def test_parked_vehicles_and_late_entries(scenes):
     parked_seen = late_seen = 0
     for (family, seed), scene in scenes.items():
