@@ -42,9 +42,11 @@ Families (right-hand traffic; every scene is rotated by a random angle about the
     goal == start (not controllable).
 
 Traffic around the ego: 1-3 agents on routes that cross or join the ego's, present from
-step 0 and timed to reach the conflict at about the ego's time; the other agents use the
-other routes (some entering later at the map border). The ego's goal lies past its conflict
-zones (at most 25 m past the first one; 12 m in roundabouts) unless its log goes further.
+step 0 and timed to reach the conflict at about the ego's time (parked: to leave the bypass
+a little before the ego reaches it); the other agents use the other routes (some entering
+later at the map border). The ego's goal lies past its conflict zones (at most 25 m past the
+first one; 12 m in roundabouts; parked: past the last parked vehicle) unless its log goes
+further.
 
 Road polylines are ordered lanes first, so lane ``k`` of a route is road polyline ``k``
 (:attr:`ProceduralScene.routes`). ``ROAD_EDGE`` polylines bound the drivable area and
@@ -138,8 +140,8 @@ class _Net:
     give_way: list[tuple[int, int]] = dataclasses.field(default_factory=list)   # (lane a yields to lane b)
     ego_reach: float = 25.0    # the ego's goal lies at most this far past its first conflict zone, m
     # where the ego's task ends when that is not past its conflict zones (a point near its
-    # route, projected onto it): the parked family's bypass is one long zone, and passing it
-    # and swinging back does not fit in an episode after a wait for the oncoming car
+    # route, snapped to the route's nearest vertex): the parked family's bypass is one long
+    # zone, and passing it and swinging back does not fit in an episode after a wait
     ego_goal_xy: np.ndarray | None = None
 
     def lane(self, polyline: np.ndarray, level: int = 1) -> int:
@@ -573,9 +575,10 @@ class _FamilySpec:
     late_fraction: float             # share of traffic that enters after step 0
     moving_trucks: bool
     # rivals are timed to leave the shared zone (not to enter it) when the ego reaches it, and
-    # no untimed rival is added: for a long shared zone (the parked family's bypass, 50-80 m
-    # of the oncoming lane) an oncoming car timed to *enter* it with the ego holds the ego
-    # back for the 6-8 s it takes to pass, and the ego's log then ends short of its goal
+    # the traffic loop adds no untimed rival (the fallback draw, used only when no timed one
+    # fits, still may): for a long shared zone (the parked family's bypass, 50-90 m of the
+    # oncoming lane) an oncoming car timed to *enter* it with the ego holds the ego back for
+    # the 6-8 s it takes to pass, and the ego's log then ends short of its goal
     rivals_leave_first: bool = False
     rival_eta_scale: float = 1.0     # rivals are timed to reach their meeting point at this x the ego's ETA
 
@@ -718,7 +721,8 @@ class _Placer:
         self.add(ego_route, s0, speed, 0, length, width)
         ego = len(self.agents) - 1
         ego_eta = max(entry - s0 - 0.5 * length, 0.0) / max(speed, 3.0)
-        # rivals: routes that conflict with the ego's, timed to arrive at about the same time
+        # rivals: routes that conflict with the ego's, timed to reach their meeting point
+        # (the zone's start, or its end for rivals_leave_first) at about the ego's time
         rivals = [r for r in others if self.conflict_entry(r, ego_route) is not None]
         rival_set = set(rivals)
         # at most 1-3 agents on routes that cross or join the ego's, all present from the

@@ -55,7 +55,7 @@ def test_evaluator_simulates_each_ego_of_a_scene(tmp_path: Path) -> None:
 
 def test_procedural_tasks_are_scenes_whose_log_reaches_its_goal() -> None:
     # BehaviorBench's goal is the log's final position; a procedural scene whose logged ego
-    # stops short of its goal (mostly the parked family) is no task
+    # stops short of its goal (a few T-junction and intersection scenes) is no task
     from cpsim.scenario import ego_log_reaches_goal, eval_pool
 
     pool = eval_pool(12, seed=4)  # two scenes per family: the pool make_tasks draws below

@@ -229,10 +229,19 @@ def test_parked_ego_waits_for_oncoming_traffic_and_still_reaches_its_goal():
     # ... while the interaction stays: the logged ego slows down for an oncoming car
     min_speed = [s.log_speed[s.ego_index][s.log_valid[s.ego_index]].min() for s in scenarios]
     assert np.mean(np.array(min_speed) < 2.0) >= 0.5, min_speed
+    # the task ends past the last parked vehicle (not before it), and it is no longer the old
+    # goal past the swing back (about 75 m along the route from the start)
+    to_goal = []
     for s in scenarios:
         e = s.ego_index
         start = s.log_xy[e][s.log_valid[e]][0]
-        assert 15.0 < np.linalg.norm(s.goal_xy[e] - start) < 120.0
+        parked = np.nonzero(~s.controllable & s.log_valid[:, 0]
+                            & np.all(s.log_xy == s.log_xy[:, :1], axis=(1, 2)))[0]
+        assert parked.size, s.id
+        farthest_parked = max(np.linalg.norm(s.log_xy[p, 0] - start) + 0.5 * s.sizes[p, 0] for p in parked)
+        to_goal.append(np.linalg.norm(s.goal_xy[e] - start))
+        assert to_goal[-1] > farthest_parked, s.id
+    assert np.mean(to_goal) < 65.0, to_goal
 
 
 def test_parked_vehicles_and_late_entries(scenes):
