@@ -35,11 +35,11 @@ Families (right-hand traffic; every scene is rotated by a random angle about the
 ``parked``
     Two-way road, one lane per direction (curvature radius >= 150 m), 1-4 parked cars or
     trucks partly blocking the right lane; a bypass lane swings into the opposite lane
-    around them (as far as they need). Oncoming traffic has priority. Ego: the first car behind the parked
-    vehicles; its oncoming rivals are timed to leave the bypass shortly before it gets
-    there (it waits briefly, then passes), and its task ends once it is past the last
-    parked vehicle (or where its log ends, if further). Parked vehicles are agents with
-    goal == start (not controllable).
+    around them (as far as they need). Oncoming traffic has priority. Ego: the first car
+    behind the parked vehicles; its oncoming rivals are timed to leave the bypass shortly
+    before it gets there (it waits briefly, then passes), and its task ends once it is past
+    the last parked vehicle (or where its log ends, if further). Parked vehicles are agents
+    with goal == start (not controllable).
 
 Traffic around the ego: 1-3 agents on routes that cross or join the ego's, present from
 step 0 and timed to reach the conflict at about the ego's time (parked: to leave the bypass
