@@ -10,14 +10,14 @@ script, and writes the new file through a temporary file and a rename.
 """
 from __future__ import annotations
 
-import csv
 import json
 import os
+
+from item3 import REGIMES, load  # the same summary_{deployment}.csv reader, beside this script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ANCHOR_JSON = os.path.join(HERE, "..", "..", "..", "zoo", "anchor.json")
 DEPLOYMENTS = ("normal", "aggressive", "cautious")
-REGIMES = ["idm", "selfplay", "bc", "replay", "aggressive", "normal", "cautious", "mix"]
 METRICS = ("score", "completion", "at_fault_collision", "non_at_fault_collision", "offroad", "timeout",
            "co_player_harm")
 
@@ -30,12 +30,7 @@ def split_block(rows: dict, split: str) -> dict:
 
 
 def load_folder(folder: str, splits: tuple[str, ...]) -> dict:
-    result = {}
-    for dep in DEPLOYMENTS:
-        path = os.path.join(folder, f"summary_{dep}.csv")
-        rows = {(r["split"], r["regime"], r["metric"]): float(r["mean"]) for r in csv.DictReader(open(path))}
-        result[dep] = {s: split_block(rows, s) for s in splits}
-    return result
+    return {dep: {s: split_block(load(folder, dep), s) for s in splits} for dep in DEPLOYMENTS}
 
 
 def pool(blocks: list[dict]) -> dict:
