@@ -1,0 +1,69 @@
+"""Write zoo/anchor_fast.json for the compressed J16 (thirteenth sitting).
+
+    python docs/results/anchor_fast/make_json_J16.py
+
+Reads the compress report ``runs/anchor_fast_J16/r128.json`` (``counterplay compress-anchor``),
+the evaluator summaries of the compressed anchor copied to ``J16_r128/summary_{deployment}.csv``
+beside this script (task set 0, the same tasks as ``zoo/anchor.json``'s ``evaluator.seed0``),
+and the previous zoo/anchor_fast.json (I9F's conversion), which becomes
+``previous_anchor_fast``. The learn benchmark is carried over: it was measured with the
+previous conversion's weights, and the network and settings are the same. Written through a
+temporary file and a rename; refuses to run twice.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, "..", "parked_fix"))
+from anchor_json import load_folder  # noqa: E402  (the evaluator summary reader of zoo/anchor.json)
+
+ROOT = os.path.join(HERE, "..", "..", "..")
+ANCHOR_FAST_JSON = os.path.join(ROOT, "zoo", "anchor_fast.json")
+REPORT = os.path.join(ROOT, "runs", "anchor_fast_J16", "r128.json")
+
+
+def main() -> None:
+    previous = json.load(open(ANCHOR_FAST_JSON))
+    if "J16" in previous["description"]:
+        raise SystemExit(f"{ANCHOR_FAST_JSON} already describes J16's conversion")
+    report = json.load(open(REPORT))
+    flat = json.load(open(os.path.join(ROOT, "zoo", "anchor.json")))["evaluator"]["seed0"]
+    command = report["command"].split("bin/", 1)[-1].replace("runs/anchor_fast_J16/r128.zip", "zoo/anchor_fast.zip")
+    doc = {
+        "description": (
+            "The shipped anchor (zoo/anchor.zip: candidate J16, shipped since 2026-12-03's twelfth sitting) "
+            "compressed into the LinearEncoder network (cpalgo.encoders: 128 features in front of the LSTM and "
+            "the critic): its input layers factorised at rank 128 on observations it sees, then 20 DAgger rounds "
+            "of distillation on its action probabilities and values (cpalgo.compress). Post-train it with "
+            "zoo/counterplay_fast.yml."),
+        "commands": [command,
+                     "python -m cpalgo.evaluate --policy anchor=zoo/anchor_fast.zip --traffic-policy zoo/anchor_fast.zip "
+                     "--split both --n 100 --seed 0 --deploy DEPLOY --no-plots"],
+        "machine": "2 CPU cores (AMD EPYC, AVX2), no GPU, torch 2.13 CPU (2 threads), Warp 1.19 CPU",
+        "wall_s": report["wall_s"],
+        "fit": report["fit"],
+        "distillation": {"config": report["config"], "rounds": report["rounds"]},
+        "evaluator": {
+            "command": ("python -m cpalgo.evaluate --policy anchor=zoo/anchor_fast.zip --traffic-policy "
+                        "zoo/anchor_fast.zip --split both --n 100 --seed 0 --deploy DEPLOY --no-plots (procedural "
+                        "pool, all 8 regimes; task set 0, as zoo/anchor.json's evaluator.seed0)"),
+            "deploy": load_folder(os.path.join(HERE, "J16_r128"), ("interactive", "random"))},
+        "flat_anchor_evaluator": flat,
+        "learn_benchmark": {**previous["learn_benchmark"],
+                            "note_J16": ("measured with the previous conversion's weights (I9F's); the network and "
+                                         "settings are the same, and throughput does not depend on the weights")},
+        "previous_anchor_fast": previous,
+    }
+    tmp = ANCHOR_FAST_JSON + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump(doc, fh, indent=1)
+        fh.write("\n")
+    os.replace(tmp, ANCHOR_FAST_JSON)
+    print("wrote", os.path.normpath(ANCHOR_FAST_JSON))
+
+
+if __name__ == "__main__":
+    main()
