@@ -16,6 +16,8 @@ import json
 import os
 import sys
 
+from cpsim.atomic import atomic_path
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "parked_fix"))
 from anchor_json import load_folder  # noqa: E402  (the evaluator summary reader of zoo/anchor.json)
@@ -57,11 +59,9 @@ def main() -> None:
                                          "settings are the same, and throughput does not depend on the weights")},
         "previous_anchor_fast": previous,
     }
-    tmp = ANCHOR_FAST_JSON + ".tmp"
-    with open(tmp, "w") as fh:
+    with atomic_path(ANCHOR_FAST_JSON) as tmp, open(tmp, "w") as fh:
         json.dump(doc, fh, indent=1)
         fh.write("\n")
-    os.replace(tmp, ANCHOR_FAST_JSON)
     print("wrote", os.path.normpath(ANCHOR_FAST_JSON))
 
 

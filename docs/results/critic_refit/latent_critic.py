@@ -23,7 +23,7 @@ import numpy as np
 import torch as th
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from refit_critic import parse_scales  # noqa: E402
+from refit_critic import discounted_returns, last_decisions, parse_scales  # noqa: E402
 
 from cpalgo.common.policy_utils import inverse_cdf_sample, zero_states  # noqa: E402
 from cpalgo.counterplay.search import select_root  # noqa: E402
@@ -63,16 +63,8 @@ def rollout(policy, seed: int, scales: dict[str, float], tasks: int = 96, gamma:
             if bool(sim.world_done.all()):
                 break
     alive = np.stack(alive)
-    rewards = np.where(alive, np.stack(rewards), 0.0)
-    returns = np.zeros_like(rewards)
-    running = np.zeros(rewards.shape[1:])
-    for t in range(rewards.shape[0] - 1, -1, -1):
-        running = rewards[t] + gamma * running
-        returns[t] = running
-    ever = alive.any(0)
-    last = np.where(ever, alive.shape[0] - 1 - np.argmax(alive[::-1], axis=0), -1)
-    return dict(lat=np.stack(latents), alive=alive, ret=returns.astype(np.float32),
-                outcome=sim.outcome.cpu().numpy(), last=last)
+    return dict(lat=np.stack(latents), alive=alive, ret=discounted_returns(np.stack(rewards), alive, gamma),
+                outcome=sim.outcome.cpu().numpy(), last=last_decisions(alive))
 
 
 def main() -> None:

@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import argparse
 import collections
-import os
 import time
-from pathlib import Path
 
 import numpy as np
 import torch as th
 
+from cpalgo.checkpoint import save_model_atomic
 from cpalgo.common.policy_utils import inverse_cdf_sample, policy_step_logits, zero_states
 from cpalgo.counterplay.search import select_root
 from cpalgo.evaluate.runner import load_model
@@ -65,16 +64,26 @@ def rollout(policy, tasks: int, seed: int, gamma: float, scales: dict[str, float
             if bool(sim.world_done.all()):
                 break
     alive = np.stack(alive)
-    rewards = np.where(alive, np.stack(rewards), 0.0)
+    return dict(obs=np.stack(obs), alive=alive, returns=discounted_returns(np.stack(rewards), alive, gamma),
+                outcome=sim.outcome.cpu().numpy(), last=last_decisions(alive))
+
+
+def discounted_returns(rewards: np.ndarray, alive: np.ndarray, gamma: float) -> np.ndarray:
+    """(T, W, A) discounted return from every decision of live agents (0 elsewhere), float32;
+    the episode ends at T, so nothing is bootstrapped."""
+    rewards = np.where(alive, rewards, 0.0)
     returns = np.zeros_like(rewards)
     running = np.zeros(rewards.shape[1:])
     for t in range(rewards.shape[0] - 1, -1, -1):
         running = rewards[t] + gamma * running
         returns[t] = running
+    return returns.astype(np.float32)
+
+
+def last_decisions(alive: np.ndarray) -> np.ndarray:
+    """(W, A) last decision at which each agent was alive (-1: never)."""
     ever = alive.any(0)
-    last = np.where(ever, alive.shape[0] - 1 - np.argmax(alive[::-1], axis=0), -1)
-    return dict(obs=np.stack(obs), alive=alive, returns=returns.astype(np.float32),
-                outcome=sim.outcome.cpu().numpy(), last=last)
+    return np.where(ever, alive.shape[0] - 1 - np.argmax(alive[::-1], axis=0), -1)
 
 
 def critic_parameters(policy) -> list[th.nn.Parameter]:
@@ -182,11 +191,7 @@ def main() -> None:
     for n, p in policy.named_parameters():
         if n in actor_before and not th.equal(actor_before[n], p.detach()):
             raise SystemExit(f"actor parameter {n} changed")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.stem + ".tmp.zip")
-    model.save(str(tmp))
-    os.replace(tmp, out)
+    out = save_model_atomic(model, args.out)
     print(f"critic refit: {args.model} -> {out} in {time.time() - t0:.0f} s")
 
 

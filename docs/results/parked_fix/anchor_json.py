@@ -15,6 +15,8 @@ import os
 
 from item3 import REGIMES, load  # the same summary_{deployment}.csv reader, beside this script
 
+from cpsim.atomic import atomic_path
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ANCHOR_JSON = os.path.join(HERE, "..", "..", "..", "zoo", "anchor.json")
 DEPLOYMENTS = ("normal", "aggressive", "cautious")
@@ -101,11 +103,9 @@ def main() -> None:
         },
         "previous_anchor": previous,
     }
-    tmp = ANCHOR_JSON + ".tmp"
-    with open(tmp, "w") as fh:
+    with atomic_path(ANCHOR_JSON) as tmp, open(tmp, "w") as fh:
         json.dump(anchor, fh, indent=1)
         fh.write("\n")
-    os.replace(tmp, ANCHOR_JSON)
     print("wrote", os.path.normpath(ANCHOR_JSON))
 
 

@@ -15,6 +15,8 @@ import os
 
 from anchor_json import ANCHOR_JSON, HERE, load_folder, pool
 
+from cpsim.atomic import atomic_path
+
 
 def item3_sentence(p: dict, label: str) -> str:
     sep = {s: 100 * (p["aggressive"][s]["completion"] - p["normal"][s]["completion"]) for s in ("interactive", "random")}
@@ -49,11 +51,9 @@ def main() -> None:
         "(--seed 4 to 7, drawn after the choice; thirteenth sitting) are 'seed4' to 'seed7'. "
         + item3_sentence(evaluator["pooled_fresh_4_sets"], "Over the fresh sets")
         + " " + item3_sentence(evaluator["pooled_8_sets"], "Over all eight sets ('pooled_8_sets')"))
-    tmp = ANCHOR_JSON + ".tmp"
-    with open(tmp, "w") as fh:
+    with atomic_path(ANCHOR_JSON) as tmp, open(tmp, "w") as fh:
         json.dump(record, fh, indent=1)
         fh.write("\n")
-    os.replace(tmp, ANCHOR_JSON)
     print("wrote", os.path.normpath(ANCHOR_JSON))
 
 

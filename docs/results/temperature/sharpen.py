@@ -13,11 +13,10 @@ verification, and PPO's starting point.
 from __future__ import annotations
 
 import argparse
-import os
-from pathlib import Path
 
 import torch as th
 
+from cpalgo.checkpoint import save_model_atomic
 from cpalgo.evaluate.runner import load_model
 
 
@@ -34,11 +33,7 @@ def main() -> None:
     with th.no_grad():
         head.weight.mul_(1.0 / args.temperature)
         head.bias.mul_(1.0 / args.temperature)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.stem + ".tmp.zip")
-    model.save(str(tmp))
-    os.replace(tmp, out)
+    out = save_model_atomic(model, args.out)
     print(f"{args.model} -> {out}: action logits / {args.temperature}")
 
 
