@@ -6,8 +6,9 @@ Reads the compress report ``runs/anchor_fast_J16/r128.json`` (``counterplay comp
 the evaluator summaries of the compressed anchor copied to ``J16_r128/summary_{deployment}.csv``
 beside this script (task set 0, the same tasks as ``zoo/anchor.json``'s ``evaluator.seed0``),
 and the previous zoo/anchor_fast.json (I9F's conversion), which becomes
-``previous_anchor_fast``. The learn benchmark is carried over: it was measured with the
-previous conversion's weights, and the network and settings are the same. Written through a
+``previous_anchor_fast``. The learn benchmark is carried over: it was measured with an
+earlier conversion's weights (the compressed anchor of 2026-12-02), and the network and
+settings are the same. Written through a
 temporary file and a rename; refuses to run twice.
 """
 from __future__ import annotations
@@ -55,8 +56,9 @@ def main() -> None:
             "deploy": load_folder(os.path.join(HERE, "J16_r128"), ("interactive", "random"))},
         "flat_anchor_evaluator": flat,
         "learn_benchmark": {**previous["learn_benchmark"],
-                            "note_J16": ("measured with the previous conversion's weights (I9F's); the network and "
-                                         "settings are the same, and throughput does not depend on the weights")},
+                            "note_J16": ("measured with an earlier conversion's weights (the compressed anchor of "
+                                         "2026-12-02, as the note above says); the network and settings are the "
+                                         "same, and throughput does not depend on the weights")},
         "previous_anchor_fast": previous,
     }
     with atomic_path(ANCHOR_FAST_JSON) as tmp, open(tmp, "w") as fh:

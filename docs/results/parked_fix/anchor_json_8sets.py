@@ -19,22 +19,38 @@ from cpsim.atomic import atomic_path
 
 
 def item3_sentence(p: dict, label: str) -> str:
-    sep = {s: 100 * (p["aggressive"][s]["completion"] - p["normal"][s]["completion"]) for s in ("interactive", "random")}
+    """The item-3 values of a pooled record (Interactive / Random) with their verdicts."""
+    splits = ("interactive", "random")
+    normal, aggressive, cautious = p["normal"], p["aggressive"], p["cautious"]
 
-    def pct(dep: str, metric: str) -> str:
-        return f"{100 * p[dep]['interactive'][metric]:.1f} / {100 * p[dep]['random'][metric]:.1f} %"
+    def pair(values: list[float], fmt: str) -> str:
+        return " / ".join(format(v, fmt) for v in values)
 
+    def missed(ok: list[bool]) -> str:
+        names = [s.capitalize() for s, good in zip(splits, ok) if not good]
+        return "met" if not names else " and ".join(names) + " missed"
+
+    score = [normal[s]["score"] for s in splits]
+    at_fault = [100 * normal[s]["at_fault_collision"] for s in splits]
+    timeout = [100 * normal[s]["timeout"] for s in splits]
+    other_failures = [100 * max(normal[s][m] for m in ("at_fault_collision", "non_at_fault_collision", "offroad"))
+                      for s in splits]
+    sep = [100 * (aggressive[s]["completion"] - normal[s]["completion"]) for s in splits]
+    cautious_at_fault = [100 * cautious[s]["at_fault_collision"] for s in splits]
     gaps = []
-    for s in ("interactive", "random"):
-        c = p["normal"][s]["completion_by_regime"]
-        regimes = [c[g] for g in ("aggressive", "normal", "cautious")]
+    for s in splits:
+        by_regime = normal[s]["completion_by_regime"]
+        regimes = [by_regime[g] for g in ("aggressive", "normal", "cautious")]
         gaps.append(100 * (max(regimes) - min(regimes)))
-    return (f"{label} (Interactive / Random): score {p['normal']['interactive']['score']:.1f} / "
-            f"{p['normal']['random']['score']:.1f}, at-fault {pct('normal', 'at_fault_collision')}, timeout "
-            f"{pct('normal', 'timeout')}, aggressive - normal completion {sep['interactive']:+.1f} / "
-            f"{sep['random']:+.1f} (>= +10: Random missed), cautious at-fault {pct('cautious', 'at_fault_collision')}, "
-            f"completion gap across the aggressive / normal / cautious traffic regimes {gaps[0]:.2f} / {gaps[1]:.2f} "
-            "points (>= 5: Interactive missed).")
+    return (f"{label} (Interactive / Random): score {pair(score, '.1f')} (>= 50: {missed([v >= 50 for v in score])}), "
+            f"at-fault {pair(at_fault, '.1f')} % (<= 10: {missed([v <= 10 for v in at_fault])}), timeout "
+            f"{pair(timeout, '.1f')} % (largest failure class, >= 15: "
+            f"{missed([t >= 15 and t >= o for t, o in zip(timeout, other_failures)])}), aggressive - normal "
+            f"completion {pair(sep, '+.1f')} (>= +10: {missed([v >= 10 for v in sep])}), cautious at-fault "
+            f"{pair(cautious_at_fault, '.1f')} % (<= normal's: "
+            f"{missed([c <= n for c, n in zip(cautious_at_fault, at_fault)])}), completion gap across the "
+            f"aggressive / normal / cautious traffic regimes {pair(gaps, '.2f')} points "
+            f"(>= 5: {missed([v >= 5 for v in gaps])}).")
 
 
 def main() -> None:
