@@ -17,11 +17,9 @@ import json
 import os
 import sys
 
-from cpsim.atomic import atomic_path
-
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "parked_fix"))
-from anchor_json import load_folder  # noqa: E402  (the evaluator summary reader of zoo/anchor.json)
+from anchor_json import load_folder, write_json  # noqa: E402  (the evaluator summary reader of zoo/anchor.json)
 
 ROOT = os.path.join(HERE, "..", "..", "..")
 ANCHOR_FAST_JSON = os.path.join(ROOT, "zoo", "anchor_fast.json")
@@ -61,9 +59,7 @@ def main() -> None:
                                          "same, and throughput does not depend on the weights")},
         "previous_anchor_fast": previous,
     }
-    with atomic_path(ANCHOR_FAST_JSON) as tmp, open(tmp, "w") as fh:
-        json.dump(doc, fh, indent=1)
-        fh.write("\n")
+    write_json(ANCHOR_FAST_JSON, doc)
     print("wrote", os.path.normpath(ANCHOR_FAST_JSON))
 
 

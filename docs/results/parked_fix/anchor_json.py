@@ -24,6 +24,13 @@ METRICS = ("score", "completion", "at_fault_collision", "non_at_fault_collision"
            "co_player_harm")
 
 
+def write_json(path: str, record: dict) -> None:
+    """Write ``record`` as indented JSON through a temporary file and a rename."""
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+        json.dump(record, fh, indent=1)
+        fh.write("\n")
+
+
 def split_block(rows: dict, split: str) -> dict:
     out = {m: round(sum(rows[(split, g, m)] for g in REGIMES) / len(REGIMES), 4) for m in METRICS}
     for m in ("completion", "non_at_fault_collision", "co_player_harm"):
@@ -103,9 +110,7 @@ def main() -> None:
         },
         "previous_anchor": previous,
     }
-    with atomic_path(ANCHOR_JSON) as tmp, open(tmp, "w") as fh:
-        json.dump(anchor, fh, indent=1)
-        fh.write("\n")
+    write_json(ANCHOR_JSON, anchor)
     print("wrote", os.path.normpath(ANCHOR_JSON))
 
 

@@ -13,9 +13,7 @@ from __future__ import annotations
 import json
 import os
 
-from anchor_json import ANCHOR_JSON, HERE, load_folder, pool
-
-from cpsim.atomic import atomic_path
+from anchor_json import ANCHOR_JSON, HERE, load_folder, pool, write_json
 
 
 def item3_sentence(p: dict, label: str) -> str:
@@ -67,9 +65,7 @@ def main() -> None:
         "(--seed 4 to 7, drawn after the choice; thirteenth sitting) are 'seed4' to 'seed7'. "
         + item3_sentence(evaluator["pooled_fresh_4_sets"], "Over the fresh sets")
         + " " + item3_sentence(evaluator["pooled_8_sets"], "Over all eight sets ('pooled_8_sets')"))
-    with atomic_path(ANCHOR_JSON) as tmp, open(tmp, "w") as fh:
-        json.dump(record, fh, indent=1)
-        fh.write("\n")
+    write_json(ANCHOR_JSON, record)
     print("wrote", os.path.normpath(ANCHOR_JSON))
 
 
