@@ -23,7 +23,7 @@ CONDITION_FIELDS: tuple[str, ...] = (
     "lane_align",    # weight of the lane-alignment term
     "vel_align",     # weight of the velocity-alignment term
     "lane_center",   # weight of the lane-centring term
-    "center_bias",   # lateral bias of the lane-centring target, lane widths (-0.5 .. 0.5)
+    "center_bias",   # lateral bias of the lane-centring target, m, positive keeps right (-0.5 .. 0.5)
     "reverse",       # penalty weight for reversing
 )
 NUM_CONDITION_FIELDS = len(CONDITION_FIELDS)

@@ -124,7 +124,7 @@ class SimConfig:
         grid_cell: side of the per-scenario uniform grid cells, m.
         lane_radius: lane queries look for the nearest lane centreline within this, m.
         align_deg: aligned when the heading error to the lane is below this, degrees.
-        lane_width: nominal lane width, m (scale of ``center_bias``; two-lane test).
+        lane_width: nominal lane width, m (two-lane test).
         collide_types: whether pedestrians and cyclists collide (vehicles always do).
         observe_all: compute observations for every alive agent. By default (False) only
             alive POLICY agents and task agents (controllable at reset: vehicles valid at t0
@@ -136,15 +136,6 @@ class SimConfig:
             "evaluation" (:data:`EVAL_GOAL`, 2 m and 100 m/s for every agent, whatever its
             condition; the evaluator, ``selfplay_outcomes`` and a Drive env with a fixed
             deployment condition use it).
-        step_penalty: weight of the tiny per-step reward term (reward -= step_penalty).
-        progress_coef: weight (per metre) of the style-conditioned progress term: a task agent
-            earns ``progress_coef x aggression x (metres it got closer to its goal this step)``
-            while a lane is within ``lane_radius``,
-            where ``aggression = clip(1 - collision / 3, 0, 1)`` comes from its collision
-            weight (aggressive 0.93, normal-aggressive 0.47, normal and cautious 0; p_train
-            U(0, 1)). 0 (default) turns it off. It is a signal that fires every step and only
-            for bolder styles, so that they learn to go where normal waits (DESIGN.md, "Anchor
-            recipe"); the condition vector keeps its 10 fields.
         road_simplify_tol: road polylines are simplified to this chord tolerance, m.
         road_max_segment: ... and to segments no longer than this, m.
         idm_v0, idm_accel, idm_brake, idm_headway, idm_min_gap, idm_lookahead: IDM parameters
@@ -174,8 +165,6 @@ class SimConfig:
     collide_types: bool = True
     observe_all: bool = False
     goal_criterion: str = "condition"
-    step_penalty: float = 1e-4
-    progress_coef: float = 0.0
     road_simplify_tol: float = 0.05
     road_max_segment: float = 10.0
     idm_v0: float = 15.0
@@ -239,7 +228,7 @@ class SimConfig:
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) \
                     or not np.isfinite(v) or v <= 0:
                 raise bad(name, "must be a finite number > 0")
-        for name in ("step_penalty", "progress_coef", "road_simplify_tol", "idm_min_gap", "idm_v0"):
+        for name in ("road_simplify_tol", "idm_min_gap", "idm_v0"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) \
                     or not np.isfinite(v) or v < 0:

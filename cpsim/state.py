@@ -21,8 +21,8 @@ from cpsim.conditions import NUM_CONDITION_FIELDS
 
 #: Reward terms, in the order of the last axis of ``reward_raw`` / ``reward_w``.
 REWARD_TERMS: tuple[str, ...] = (
-    "goal", "collision", "offroad", "comfort", "lane_align", "lane_center", "vel_align",
-    "reverse", "step", "progress",
+    "goal", "collision", "offroad", "comfort", "lane_align", "vel_align", "lane_center",
+    "reverse", "velocity", "time",
 )
 NUM_REWARD_TERMS = len(REWARD_TERMS)
 #: Positions kept per agent for the at-fault lane-divider rule (its last 4 positions).

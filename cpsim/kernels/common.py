@@ -69,8 +69,6 @@ class Params:
     align_rad: float
     lane_width: float
     collide_types: int
-    step_penalty: float
-    progress_coef: float
     road_max_segment: float
     idm_v0: float
     idm_accel: float
@@ -108,8 +106,6 @@ def make_params(config: SimConfig, layout) -> Params:
     p.align_rad = math.radians(config.align_deg)
     p.lane_width = float(config.lane_width)
     p.collide_types = int(bool(config.collide_types))
-    p.step_penalty = float(config.step_penalty)
-    p.progress_coef = float(config.progress_coef)
     p.road_max_segment = float(config.road_max_segment)
     p.idm_v0 = float(config.idm_v0)
     p.idm_accel = float(config.idm_accel)

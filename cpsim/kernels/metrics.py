@@ -383,14 +383,9 @@ def agent_events(state: State, scratch: StepScratch, model: ModelArrays, params:
             state.outcome[w, a] = GOAL
     # ---------------------------------------------------------------- reward (tracked only)
     if tracked:
-        progress = float(0.0)
-        # on a lane only: metres gained across the grass would pay for cutting corners
-        if state.task_agent[w, a] and has_lane:
-            progress = wp.length(state.prev_pos[w, a] - state.goal[w, a]) - wp.length(p - state.goal[w, a])
         state.reward[w, a] = write_reward(state.conditions, state.reward_raw, state.reward_w, w, a,
                                           goal_now, collided, offroad, violations, has_lane, err, offset, v,
-                                          params.lane_radius, params.lane_width, params.step_penalty,
-                                          progress, params.progress_coef)
+                                          state.accel[w, a], params.dt)
     else:
         state.reward[w, a] = 0.0
         for k in range(state.reward_raw.shape[2]):
