@@ -8,9 +8,11 @@ Measures, after compilation and a warm-up:
   1,024 / 4,096 / 16,384 policy agents at reset, with the default observation (K = 16,
   M = 64, jerk) and PufferDrive's sizes (K = 63, M = 200, classic dynamics). Both wall-clock
   and process-CPU rates are reported: on a shared machine the CPU rate is the better
-  estimate of one idle core. The 1,024-agent PufferDrive-size rows are also given as a ratio
-  to :data:`PUFFERDRIVE_AGENT_STEPS` (PufferDrive's C core on one core of the project's
-  2-core machine);
+  estimate of one idle core. Agents leave the scene at their goal, a collision or off-road
+  (the default ``SimConfig``), so ``mean_live_policy`` is below the agents at reset and the
+  rate counts live agents only. No ratio to another simulator is printed: a ratio needs the
+  same scenes and the same events (live agents per step) on both sides, which a fixed
+  number measured elsewhere does not give (BENCHMARKS.md has same-scene measurements);
 * with ``--compare DIR`` (another checkout, e.g. ``git worktree add /tmp/base HEAD~1``):
   the same cases on both trees, each in its own worker process, interleaved over
   ``--rounds`` rounds (alternating which goes first), medians and the ratio new / DIR;
@@ -49,11 +51,6 @@ CONFIGS: dict[str, dict[str, Any]] = {
     "default (K16 M64 jerk)": {},
     "pufferdrive (K63 M200 classic)": {"num_partners": 63, "num_road": 200, "dynamics": "classic"},
 }
-PUFFERDRIVE_CONFIG = "pufferdrive (K63 M200 classic)"
-#: PufferDrive's C core (-O3 -march=native) at 1,024 agents, K = 63, M = 200, classic
-#: dynamics, random actions, one lightly loaded core of the project's 2-core machine
-#: (issue 15): the reference of the speed targets (2x on procedural, 1.5x on WOMD scenes).
-PUFFERDRIVE_AGENT_STEPS = 90_000.0
 DEFAULT_SIZES = (1024, 4096, 16384)
 
 
@@ -373,13 +370,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.compare is not None:
         keys += ["base_agent_steps_per_s_cpu", "ratio_cpu", "ratio_wall"]
     print(_table(rows, keys))
-    puffer = [r for r in rows if r["config"] == PUFFERDRIVE_CONFIG and r["policy_agents"] == 1024]
-    if puffer:
-        print()
-        for r in puffer:
-            print(f"vs PufferDrive ({PUFFERDRIVE_AGENT_STEPS:,.0f} agent-steps/s, 1,024 agents, K63 M200 classic, "
-                  f"{r['source']}): x{r['agent_steps_per_s_cpu'] / PUFFERDRIVE_AGENT_STEPS:.2f} cpu, "
-                  f"x{r['agent_steps_per_s_wall'] / PUFFERDRIVE_AGENT_STEPS:.2f} wall")
+    print()
+    print("agent-steps/s count live policy agents (mean_live_policy per step); no ratio to another simulator "
+          "is given, as one needs the same scenes and the same live agents on both sides (BENCHMARKS.md)")
     if not args.quick and not args.no_extras:
         from cpsim.scenario import pool
 
