@@ -65,7 +65,7 @@ class ImitationConfig:
             teacher's action under it. The student then sees states that differ only in the
             style, which is what a search from a root varies; without them it sees each
             state under one condition and learns a style effect several times weaker than
-            the teacher's (``docs/results/anchor_failures/style_spread.py``). The critic is
+            the teacher's. The critic is
             fitted on the original copy only (the swapped return is not observed).
     """
 

@@ -248,12 +248,11 @@ class ReactiveStyle:
     scores 46.2 / 53.1 (Interactive / Random) under normal deployment and 67.4 / 63.6 under
     aggressive, without leaving the road. The first style (:data:`REACTIVE_STYLE_V1`: linear,
     schedule 0.95-1.25, no curve limit) replayed normal's log 1.03x as fast, yielded with a
-    positive margin and scored 30.2 / 37.2 (28-38 % timeouts); see ``docs/results/README.md``,
-    "The reactive teacher, version 2". Version 3 adds ``goal_brake`` (version 2 without it:
+    positive margin and scored 30.2 / 37.2 (28-38 % timeouts). Version 3 adds ``goal_brake`` (version 2 without it:
     :data:`REACTIVE_STYLE_V2`): under p_train's task fields (goal speed 3-30 m/s) version 2
     drove through the goal of 12 % of the training agents too fast to count, and timed them
     out; version 3 completes 85.0 % of 192 training tasks' agents against 74.2 %, timeouts
-    13.9 % against 24.2 % (check: ``docs/results/anchor_failures/goal_speed.py``).
+    13.9 % against 24.2 %.
     Under the evaluation goal criterion (100 m/s) version 3 brakes for no goal, so it drives
     exactly as version 2 in the evaluator.
 
@@ -498,8 +497,7 @@ REACTIVE_STYLE_V2 = ReactiveStyle(goal_brake=None)
 #: Version 4: version 3 with every style entering curves at the cautious lateral acceleration
 #: (2.5 m/s^2), so boldness changes speed on straights, headways and yielding but not the
 #: speed in turns, where the student policies of the bolder styles left the road. It did not
-#: help: they leave the road off the teacher's path at the teacher's speed
-#: (``docs/results/README.md``, "Paired style labels in TeacherPPO"); ``reactive-v4``.
+#: help: they leave the road off the teacher's path at the teacher's speed; ``reactive-v4``.
 REACTIVE_STYLE_V4 = ReactiveStyle(curve_lat_accel=(2.5, 2.5))
 
 #: Version 5: version 2 with a bolder bold end (the log replayed 1.6x as fast instead of 1.35x,
@@ -507,8 +505,7 @@ REACTIVE_STYLE_V4 = ReactiveStyle(curve_lat_accel=(2.5, 2.5))
 #: so that normal (0.54 of the way to bold) still waits where aggressive goes. As the
 #: evaluator's ego against the shipped anchor's traffic (50 tasks per split) its aggressive
 #: style completes 83.5 / 77.8 % (version 2: 76.2 / 70.2 %) with 0 % off-road;
-#: ``reactive-v5``. The imitation stage (stage 3 in README.md) of the anchor shipped since 2026-12-03 used it
-#: (``docs/results/README.md``, "A bolder teacher").
+#: ``reactive-v5``. The shipped anchor's last imitation stages used it (docs/anchor.md).
 REACTIVE_STYLE_V5 = ReactiveStyle(schedule=(0.95, 1.6), headway=(1.5, 0.5), yield_margin=(0.5, -1.0),
                                   goal_brake=None, exponent=0.45)
 
@@ -522,10 +519,9 @@ REACTIVE_STYLE_V6 = dataclasses.replace(REACTIVE_STYLE_V5, curve_lat_accel=(2.5,
 #: Version 7: version 6 with version 3's goal brake (1.5 m/s^2). Versions 5 and 6 drive through
 #: a goal whose task field asks for a low speed (p_train draws 3-30 m/s), and so does the anchor
 #: that imitated them: 44 % of the timeouts CounterPlay searched from it passed inside the goal
-#: radius too fast, which no style change repairs. Four DAgger rounds of version 7 (candidate
-#: I10, not shipped) took that to 25 %; the evaluation goal criterion never brakes it, so as the
-#: evaluator's ego it drives as version 6 (``docs/results/README.md``, "Why the searches find
-#: nothing"); ``reactive-v7``.
+#: radius too fast, which no style change repairs. Four DAgger rounds of version 7 (a candidate
+#: anchor, not shipped) took that to 25 %; the evaluation goal criterion never brakes it, so as
+#: the evaluator's ego it drives as version 6; ``reactive-v7``.
 REACTIVE_STYLE_V7 = dataclasses.replace(REACTIVE_STYLE_V6, goal_brake=1.5)
 
 _VERSIONED_STYLES = {"reactive-v1": REACTIVE_STYLE_V1, "reactive-v2": REACTIVE_STYLE_V2,

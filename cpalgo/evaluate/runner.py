@@ -149,8 +149,7 @@ def make_tasks(pool: str | os.PathLike | Sequence[Any] = "procedural", split: st
             from cpsim.scenario import ego_log_reaches_goal, eval_pool
 
             # a scene whose log falls short of its goal is not a task: the generator keeps
-            # such a scene only when no clearing draw came up (3 of eval_pool(400, seed=0);
-            # docs/results/README.md, "The parked family, corrected")
+            # such a scene only when no clearing draw came up (3 of eval_pool(400, seed=0))
             scenarios = [sc for sc in eval_pool(pool_size or 4 * int(n), seed) if ego_log_reaches_goal(sc)]
         else:
             path = Path(pool)

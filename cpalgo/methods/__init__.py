@@ -55,7 +55,7 @@ __all__ = [
 GROUPS: tuple[str, ...] = ("baseline", "counterplay", "ablation", "panel", "distillation")
 #: Modules imported before the registry is read (each registers its methods on import).
 METHOD_MODULES: list[str] = ["cpalgo.spiced", "cpalgo.cl4ad", "cpalgo.dapo", "cpalgo.vineppo", "cpalgo.plannerrft",
-                             "cpalgo.craft"]  # the adapted baselines (issue 14, docs/baselines.md)
+                             "cpalgo.craft"]  # the adapted baselines (docs/baselines.md)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,7 +249,7 @@ def _register_builtins() -> None:
     register("counterplay", "CounterPlay: value-guided backtracking, 5-style search, verification, KL distillation",
              base, group="counterplay", label="CounterPlay", components=full)
     # 70 lies beyond the paper's window (5-60): the 91-step tasks' timeouts are decided in their
-    # first seconds (docs/results/README.md, "Search yield at fixed root depths")
+    # first seconds (RESULTS.md, "The paper grid")
     for depth in (10, 30, 50, 70):
         beyond = " (beyond the paper)" if depth > 60 else ""
         register(f"cp-fixed-{depth}", f"CounterPlay with roots fixed {depth} decisions before the failure{beyond}",

@@ -320,7 +320,7 @@ def agent_events(state: State, scratch: StepScratch, model: ModelArrays, params:
         gs = params.goal_speed
     # Only task agents have a goal: a vehicle parked at its goal (no task, start within 2 m of
     # its goal) that the evaluator hands to a traffic regime would otherwise "arrive" on its
-    # first step and leave the scene (issue 17, item 10).
+    # first step and leave the scene.
     reached = state.task_agent[w, a] and wp.length(p - state.goal[w, a]) < gr and wp.abs(v) <= gs
     goal_now = reached and state.goal_step[w, a] < 0
     # ---------------------------------------------------------------- lane (tracked only)

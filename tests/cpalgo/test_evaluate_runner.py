@@ -295,7 +295,7 @@ def test_selfplay_regime_uses_the_separate_ppo_policy(tasks, tmp_path, monkeypat
         R.Evaluator(tasks[:1], ["selfplay"], ppo_policy=tmp_path / "missing.zip")
 
 
-# ----------------------------------------------------------------------------- co-players (issue 17, item 10)
+# ----------------------------------------------------------------------------- co-players
 def with_extra_agents(sc, parked: int, sid: str):
     """``sc`` plus ``parked`` parked vehicles (goal = their t0 position) in a row 300 m away,
     one pedestrian present at t0 and one vehicle that appears at t = 10 (no slot)."""
