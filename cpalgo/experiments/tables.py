@@ -20,7 +20,8 @@ A table is written only where the grid has its runs:
   retries, verified share, teachers per generation and the branch share of B_post (plus
   the counters of the other methods: rewinds, opponent transitions, distillation teachers),
   and which filter each retry failed first (:func:`cpalgo.counterplay.search.admission_verdict`).
-* **Targets** of issue 13, each with its measured value and whether it holds.
+* **Targets**: the seed paper's effects (CounterPlay >= 5 points above PPO-Continue, timeouts
+  repaired, the ablations' order), each with its measured value and whether it holds.
 
 Rates are percentages in the tables and in ``results.csv`` (columns ``*_pct``); scores
 are 0-100; ``co_player_harm`` is other vehicles collided or off-road per task.
@@ -452,7 +453,7 @@ def _targets(res: GridResults, lines: list[str]) -> None:
                        best == "counterplay" and worst == "cp-no-style"))
     if not checks:
         return
-    lines += ["## Targets (issue 13)", ""]
+    lines += ["## Targets (the seed paper's effects)", ""]
     lines += _table(["Target", "Measured", "Met"], [[t, v, "yes" if ok else "**no**"] for t, v, ok in checks])
 
 
