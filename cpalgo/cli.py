@@ -31,6 +31,10 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
+from cpalgo.common.checks import UsageError, check_out_path, load_womd_option
+from cpalgo.common.checks import non_negative_int as _non_negative_int
+from cpalgo.common.checks import positive_int as _positive_int
+from cpalgo.common.checks import set_threads as _set_threads
 from cpalgo.recipes import Recipe, import_string, load_recipe, resolve_path
 
 #: Teacher names of ``--teacher`` (cpsim.expert.EXPERTS; kept here so the parser imports no Warp).
@@ -45,10 +49,6 @@ DEFAULT_POST_CONFIG = "zoo/counterplay.yml"
 HELD_OUT_SEED = 0
 
 
-class UsageError(Exception):
-    """A wrong argument, or a file that is missing or does not fit: one line, exit status 2."""
-
-
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -61,26 +61,6 @@ def _version() -> str:
 
 
 # ----------------------------------------------------------------------------- argument types
-def _whole(text: str, minimum: int) -> int:
-    try:
-        value = float(text)  # accepts 200000 and 2e5
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if not math.isfinite(value) or not value.is_integer():
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}")
-    if value < minimum:
-        raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {text}")
-    return int(value)
-
-
-def _positive_int(text: str) -> int:
-    return _whole(text, 1)
-
-
-def _non_negative_int(text: str) -> int:
-    return _whole(text, 0)
-
-
 def _unit_float(text: str) -> float:
     try:
         value = float(text)
@@ -140,25 +120,6 @@ def _recipe_file(text: str) -> str:
 
 
 # ----------------------------------------------------------------------------- helpers
-def check_out_path(path: str | os.PathLike, argument: str, *, folder: bool) -> Path:
-    """``UsageError`` naming ``argument`` when ``path`` cannot be written: one of its parents
-    is a file, or the path itself is a file where a folder goes (``folder``) or the reverse.
-    Commands call it before any work, so a bad ``--out`` costs nothing."""
-    out = Path(path)
-    if out.exists():
-        if folder and not out.is_dir():
-            raise UsageError(f"{argument}: {str(out)!r} is a file, not a folder")
-        if not folder and out.is_dir():
-            raise UsageError(f"{argument}: {str(out)!r} is a folder, not a file")
-        return out
-    from cpsim.atomic import blocking_file
-
-    blocker = blocking_file(out)
-    if blocker is not None:
-        raise UsageError(f"{argument}: {str(blocker)!r} is a file, so {str(out)!r} cannot be created")
-    return out
-
-
 def check_algorithm_arguments(cls: type, recipe: Recipe, argument: str = "--config", **extra: Any) -> None:
     """``UsageError`` naming the recipe file and the setting when ``cls`` (an SB3 algorithm)
     rejects one of the recipe's algorithm arguments (plus ``extra``), or the recipe's
@@ -185,13 +146,6 @@ def _brief(exc: BaseException, lines: int = 2) -> str:
     """The first non-empty lines of an exception's message (torch's state-dict mismatch
     lists every tensor)."""
     return " ".join([line.strip() for line in str(exc).splitlines() if line.strip()][:lines])
-
-
-def _set_threads(threads: int | None) -> None:
-    import torch
-
-    if threads:
-        torch.set_num_threads(threads)
 
 
 def _make_env(recipe: Recipe, seed: int, num_worlds: int | None = None, **overrides: Any) -> Any:
@@ -233,7 +187,7 @@ def _held_out(n: int) -> tuple:
 
 
 def _outcomes(model: Any, n_tasks: int, max_agents: int, condition: Any = "normal") -> Any:
-    from cpalgo.selfplay_eval import selfplay_outcomes
+    from cpalgo.anchor.outcomes import selfplay_outcomes
 
     return selfplay_outcomes(model, _held_out(n_tasks), condition=condition, max_agents=max_agents)
 
@@ -274,18 +228,6 @@ def cmd_pool(args: argparse.Namespace) -> int:
 
 
 # ----------------------------------------------------------------------------- anchor
-def load_womd_option(folder: str) -> list[Any]:
-    """The scenes of an ``--add-womd`` folder; a load failure is a ``UsageError`` naming it."""
-    from cpsim import scenario as scen_mod
-
-    if not os.path.isdir(folder):
-        raise UsageError(f"--add-womd: no such folder {folder!r}")
-    try:
-        return list(scen_mod.load_dir(folder)[0])
-    except Exception as exc:  # noqa: BLE001 - reported with the folder name
-        raise UsageError(f"--add-womd: {folder}: {exc}") from None
-
-
 def cmd_train_anchor(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
 
@@ -300,7 +242,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     recipe = load_recipe(args.config)
     out = check_out_path(args.out, "--out", folder=False)
     if args.teacher_coef > 0:
-        from cpalgo.teacher_ppo import TeacherPPO as algorithm_class
+        from cpalgo.anchor.teacher_ppo import TeacherPPO as algorithm_class
     else:
         from cpalgo.counterplay.algorithm import CounterPlay as algorithm_class
     check_algorithm_arguments(algorithm_class, recipe)
@@ -314,7 +256,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     env = _make_env(recipe, args.seed, **overrides)
     steps = args.timesteps or recipe.n_timesteps
     if args.teacher_coef > 0:  # PPO with the teacher's actions as an auxiliary imitation term
-        from cpalgo.teacher_ppo import TeacherPPO
+        from cpalgo.anchor.teacher_ppo import TeacherPPO
 
         model = TeacherPPO(recipe.policy, env, teacher=args.teacher, teacher_coef=args.teacher_coef,
                            teacher_coef_final=args.teacher_coef_final, style_pairs=args.teacher_style_pairs,
@@ -334,7 +276,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     imitation = []
     t0 = time.perf_counter()
     if args.imitate:  # DAgger warm start from an expert teacher before PPO
-        from cpalgo.pretrain import ImitationConfig, imitate_expert
+        from cpalgo.anchor.imitation import ImitationConfig, imitate_expert
 
         imitation = imitate_expert(model, config=ImitationConfig(iterations=args.imitate,
                                                                  num_worlds=args.imitate_worlds,
@@ -349,7 +291,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
     if steps:
         model.learn(steps, progress_bar=args.progress, callback=ckpt)
     wall = time.perf_counter() - t0
-    from cpalgo.teacher_ppo import export_recurrent_ppo
+    from cpalgo.anchor.teacher_ppo import export_recurrent_ppo
 
     # ship a plain sb3-contrib RecurrentPPO with the same weights and Adam state
     model = export_recurrent_ppo(model, recipe.policy, env, seed=args.seed, **recipe.algo_kwargs)
@@ -550,7 +492,7 @@ def cmd_outcomes(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
     check_out_path(args.out, "--out", folder=False)
     if args.model == "expert":  # an imitation teacher
-        from cpalgo.selfplay_eval import expert_outcomes
+        from cpalgo.anchor.outcomes import expert_outcomes
 
         rates = expert_outcomes(_held_out(args.tasks), condition=args.condition, max_agents=args.max_agents,
                                 config={"dynamics": args.dynamics}, teacher=args.teacher)
@@ -630,7 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "summary.md, summary.json and plots (a rerun resumes what is there)",
                  "B_post of each method: every agent transition, main or branch, counts, and both methods "
                  "stop at N (default: the recipe's n_timesteps)")
-    from cpalgo.compress import add_command as add_compress_command
+    from cpalgo.anchor.compress import add_command as add_compress_command
     from cpalgo.experiments.command import add_commands, main_job_defaults
 
     run.set_defaults(anchor=DEFAULT_ANCHOR, config=DEFAULT_POST_CONFIG, **main_job_defaults())

@@ -1,9 +1,11 @@
-"""CL4AD-dagger: self-play worlds reset into scenarios of high learnability."""
+"""Moved to :mod:`cpalgo.baselines.cl4ad`; this package path stays importable."""
 
-import cpalgo.common.baseline_registry  # noqa: F401  (registers the six in table order)
-from cpsim._lazy import lazy_exports
+import cpalgo.baselines.cl4ad as _new
 
-_LAZY = {"CL4AD": "cpalgo.cl4ad.cl4ad", "LearnabilitySampler": "cpalgo.cl4ad.curriculum",
-         "CurriculumReset": "cpalgo.cl4ad.curriculum"}
-__getattr__, __dir__ = lazy_exports("cpalgo.cl4ad", _LAZY, globals())
-__all__ = list(_LAZY)
+
+def __getattr__(name: str):
+    return getattr(_new, name)
+
+
+def __dir__() -> list[str]:
+    return dir(_new)

@@ -1,9 +1,11 @@
-"""DAPO-dagger: group-relative continuations with decoupled clipping and dynamic sampling."""
+"""Moved to :mod:`cpalgo.baselines.dapo`; this package path stays importable."""
 
-import cpalgo.common.baseline_registry  # noqa: F401  (registers the six in table order)
-from cpsim._lazy import lazy_exports
+import cpalgo.baselines.dapo as _new
 
-_LAZY = {"DAPO": "cpalgo.dapo.dapo", "dynamic_sampling_keep": "cpalgo.dapo.dapo",
-         "decoupled_clip_objective": "cpalgo.dapo.dapo"}
-__getattr__, __dir__ = lazy_exports("cpalgo.dapo", _LAZY, globals())
-__all__ = list(_LAZY)
+
+def __getattr__(name: str):
+    return getattr(_new, name)
+
+
+def __dir__() -> list[str]:
+    return dir(_new)

@@ -25,8 +25,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--device", default="cpu")
     args = p.parse_args(argv)
 
-    from cpalgo.bc import BCPolicy
     from cpalgo.evaluate import runner as R
+    from cpalgo.traffic.bc import BCPolicy
 
     tasks = R.make_tasks("procedural", "both", args.n, seed=0)
     t = time.perf_counter()

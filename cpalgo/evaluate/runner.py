@@ -309,7 +309,7 @@ def load_model(path: str | os.PathLike, argument: str = "policy") -> Any:
     if not p.is_file():
         raise ValueError(f"{argument}: checkpoint {str(p)!r} does not exist")
     if p.suffix == ".pt":
-        from cpalgo.bc import BCPolicy
+        from cpalgo.traffic.bc import BCPolicy
 
         try:
             return BCPolicy.load(p)
@@ -549,7 +549,7 @@ class Evaluator:
             if bc_policy is None:
                 if not DEFAULT_BC_PATH.is_file():
                     raise ValueError(f"bc_policy: regime 'bc' needs a behaviour-cloning model; "
-                                     f"none given and {DEFAULT_BC_PATH} is missing (python -m cpalgo.bc)")
+                                     f"none given and {DEFAULT_BC_PATH} is missing (python -m cpalgo.traffic)")
                 bc_policy = DEFAULT_BC_PATH
             if isinstance(bc_policy, (str, os.PathLike)):
                 bc_policy = load_model(bc_policy, "bc_policy")

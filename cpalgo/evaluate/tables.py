@@ -15,15 +15,12 @@ import io
 import json
 import math
 import os
-import shutil
-import tempfile
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from cpalgo.evaluate import metrics as M
-from cpsim.atomic import atomic_path, default_mode
+from cpsim.atomic import AtomicDir, write_text_atomic
 
 if TYPE_CHECKING:  # pragma: no cover
     from cpalgo.evaluate.runner import EvalResult
@@ -266,49 +263,6 @@ def _clean_nan(o: Any) -> Any:
     if isinstance(o, (list, tuple)):
         return [_clean_nan(v) for v in o]
     return o
-
-
-# ----------------------------------------------------------------------------- atomic writing
-def write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write ``text`` to ``path`` through a temp file in the same folder and ``os.replace``."""
-    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
-        f.write(text)
-
-
-class AtomicDir:
-    """Build a results folder under a hidden temp name, then swap it into place.
-
-    ``with AtomicDir(out) as tmp: ...write into tmp...``. On success the previous folder
-    (if any) is replaced; on an exception (or interruption) the temp folder is removed
-    and ``out`` is left as it was, so a partial result never looks complete.
-    """
-
-    def __init__(self, out: str | os.PathLike):
-        self.out = Path(out)
-        self.tmp: Path | None = None
-
-    def __enter__(self) -> Path:
-        parent = self.out.parent
-        parent.mkdir(parents=True, exist_ok=True)
-        if self.out.exists() and not self.out.is_dir():
-            raise ValueError(f"out: {self.out} exists and is not a folder")
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.tmp-", dir=parent))
-        os.chmod(self.tmp, default_mode(directory=True))
-        return self.tmp
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        assert self.tmp is not None
-        if exc_type is not None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-            return
-        old = None
-        if self.out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.old-", dir=self.out.parent))
-            os.rmdir(old)
-            os.replace(self.out, old)
-        os.replace(self.tmp, self.out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
 
 
 def write_results(

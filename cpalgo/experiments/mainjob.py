@@ -48,8 +48,9 @@ def main_job_grid(anchor: str, recipe: str, budget: int, seed: int = 0, eval_tas
 
 def main_job_summary(out: str | os.PathLike, grid: GridConfig) -> dict[str, Any]:
     """``summary.md`` / ``summary.json`` of the main job from the grid's files."""
-    from cpalgo.experiments.runs import write_bytes_atomic, write_json_atomic
+    from cpalgo.experiments.runs import write_json_atomic
     from cpalgo.experiments.tables import REPAIR_CLASSES, _cell, _repair_values, _table, collect_results
+    from cpsim.atomic import write_bytes_atomic
 
     out = Path(out)
     res = collect_results(out, grid)

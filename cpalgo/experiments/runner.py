@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from cpalgo.experiments.grid import ANCHOR, GridConfig, GridError, RunSpec, load_grid
-from cpalgo.experiments.runs import execute_run, run_dir, run_status, write_bytes_atomic, write_json_atomic
+from cpalgo.experiments.runs import execute_run, run_dir, run_status, write_json_atomic
+from cpsim.atomic import write_bytes_atomic
 
 __all__ = ["run_experiment", "ExperimentResult", "BACKENDS", "ray_available"]
 

@@ -32,7 +32,7 @@ from typing import Any, Callable
 import numpy as np
 
 from cpalgo.experiments.grid import ANCHOR, GridConfig, RunSpec
-from cpsim.atomic import atomic_path
+from cpsim.atomic import write_bytes_atomic
 
 __all__ = ["run_dir", "run_status", "execute_run", "train_run", "evaluate_columns", "load_columns",
            "budget_state", "restore_budget_state", "write_bytes_atomic", "write_json_atomic"]
@@ -45,13 +45,6 @@ def _echo(line: str) -> None:
 
 
 # ----------------------------------------------------------------------------- files
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(data)
-
-
 def write_json_atomic(path: str | os.PathLike, doc: Any) -> None:
     write_bytes_atomic(path, (json.dumps(doc, indent=2, default=_json_default) + "\n").encode())
 

@@ -43,7 +43,8 @@ import numpy as np
 from cpalgo.counterplay.search import ADMISSION_VERDICTS
 from cpalgo.evaluate import metrics as M
 from cpalgo.experiments.grid import ANCHOR, GridConfig
-from cpalgo.experiments.runs import load_columns, run_dir, write_bytes_atomic
+from cpalgo.experiments.runs import load_columns, run_dir
+from cpsim.atomic import write_bytes_atomic
 
 __all__ = ["GridResults", "collect_results", "results_csv", "markdown_report", "write_tables", "repaired",
            "RESULT_METRICS"]

@@ -26,7 +26,7 @@ Registering a method is one line (at import time of the module that defines it):
 
     from cpalgo.methods import register
     register("spiced", "PPO + KL to a frozen behaviour-cloning policy (SPICED)",
-             "cpalgo.methods.spiced:Spiced", group="baseline", label="SPICED")
+             "cpalgo.baselines.spiced.spiced:Spiced", group="baseline", label="SPICED")
 
 ``algorithm`` may be the class itself or ``"module:Class"`` (imported when first built);
 keyword arguments other than the documented ones become constructor settings of that
@@ -54,8 +54,7 @@ __all__ = [
 #: Table groups, in table order.
 GROUPS: tuple[str, ...] = ("baseline", "counterplay", "ablation", "panel", "distillation")
 #: Modules imported before the registry is read (each registers its methods on import).
-METHOD_MODULES: list[str] = ["cpalgo.spiced", "cpalgo.cl4ad", "cpalgo.dapo", "cpalgo.vineppo", "cpalgo.plannerrft",
-                             "cpalgo.craft"]  # the adapted baselines (docs/baselines.md)
+METHOD_MODULES: list[str] = ["cpalgo.baselines"]  # the six adapted baselines (docs/baselines.md)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,9 +1,11 @@
-"""PlannerRFT-dagger: GRPO on continuations against log-replayed traffic, learned temperature."""
+"""Moved to :mod:`cpalgo.baselines.plannerrft`; this package path stays importable."""
 
-import cpalgo.common.baseline_registry  # noqa: F401  (registers the six in table order)
-from cpsim._lazy import lazy_exports
+import cpalgo.baselines.plannerrft as _new
 
-_LAZY = {"PlannerRFT": "cpalgo.plannerrft.plannerrft", "grpo_objective": "cpalgo.plannerrft.plannerrft",
-         "ExplorationHead": "cpalgo.plannerrft.policies"}
-__getattr__, __dir__ = lazy_exports("cpalgo.plannerrft", _LAZY, globals())
-__all__ = list(_LAZY)
+
+def __getattr__(name: str):
+    return getattr(_new, name)
+
+
+def __dir__() -> list[str]:
+    return dir(_new)

@@ -1,8 +1,11 @@
-"""VinePPO-dagger: Monte Carlo root values from groups of continuations in PPO's advantages."""
+"""Moved to :mod:`cpalgo.baselines.vineppo`; this package path stays importable."""
 
-import cpalgo.common.baseline_registry  # noqa: F401  (registers the six in table order)
-from cpsim._lazy import lazy_exports
+import cpalgo.baselines.vineppo as _new
 
-_LAZY = {"VinePPO": "cpalgo.vineppo.vineppo"}
-__getattr__, __dir__ = lazy_exports("cpalgo.vineppo", _LAZY, globals())
-__all__ = list(_LAZY)
+
+def __getattr__(name: str):
+    return getattr(_new, name)
+
+
+def __dir__() -> list[str]:
+    return dir(_new)

@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from cpalgo.cl4ad.curriculum import LearnabilitySampler  # noqa: E402
+from cpalgo.baselines.cl4ad.curriculum import LearnabilitySampler  # noqa: E402
 from cpalgo.methods.base import base_vec_env  # noqa: E402
 from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
 

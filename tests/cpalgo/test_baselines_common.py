@@ -12,7 +12,7 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from cpalgo.common.continuations import (  # noqa: E402
+from cpalgo.baselines.continuations import (  # noqa: E402
     ContinuationRunner,
     GroupJob,
     RootReservoir,

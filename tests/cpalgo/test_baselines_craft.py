@@ -8,9 +8,9 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from cpalgo.common.continuations import action_grid  # noqa: E402
-from cpalgo.craft.craft import ResidualTable, score_function_objective  # noqa: E402
-from cpalgo.craft.proxy import hold_then_decay  # noqa: E402
+from cpalgo.baselines.continuations import action_grid  # noqa: E402
+from cpalgo.baselines.craft.craft import ResidualTable, score_function_objective  # noqa: E402
+from cpalgo.baselines.craft.proxy import hold_then_decay  # noqa: E402
 from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
 
 pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py

@@ -11,7 +11,7 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from cpalgo.dapo.dapo import decoupled_clip_objective, dynamic_sampling_keep  # noqa: E402
+from cpalgo.baselines.dapo.dapo import decoupled_clip_objective, dynamic_sampling_keep  # noqa: E402
 from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
 
 pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py

@@ -10,9 +10,9 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from cpalgo.common.continuations import ContinuationRunner, GroupJob, branch_simulator_factory  # noqa: E402
+from cpalgo.baselines.continuations import ContinuationRunner, GroupJob, branch_simulator_factory  # noqa: E402
+from cpalgo.baselines.plannerrft.plannerrft import grpo_objective  # noqa: E402
 from cpalgo.methods.base import base_vec_env  # noqa: E402
-from cpalgo.plannerrft.plannerrft import grpo_objective  # noqa: E402
 from cpsim.config import Controller  # noqa: E402
 from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
 

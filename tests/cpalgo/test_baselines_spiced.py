@@ -8,8 +8,8 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from cpalgo.bc import BCPolicy  # noqa: E402
 from cpalgo.methods.base import frozen_policy_copy  # noqa: E402
+from cpalgo.traffic.bc import BCPolicy  # noqa: E402
 from tests.cpalgo.fakes import minibatch_logits  # noqa: E402
 from tests.cpalgo.test_baselines_common import anchor, build, collect  # noqa: E402,F401
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch as th
 
-from cpalgo.bc import BCData, BCPolicy, TrainConfig, train
+from cpalgo.traffic.bc import BCData, BCPolicy, TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("_one_torch_thread")  # tests/conftest.py
 
@@ -76,7 +76,7 @@ def test_collect_labels_reproduce_the_logs():
     """On log replay, the labelled action held for 0.5 s lands close to the logged state
     (the probe simulator really starts from each agent's current state)."""
     pytest.importorskip("cpsim.simulator")
-    from cpalgo.bc import collect
+    from cpalgo.traffic.bc import collect
     from cpsim.scenario import train_pool
 
     scenarios = list(train_pool(2, 0))
@@ -117,7 +117,7 @@ def tiny_pool():
 
 
 def test_rollouts_relabel_the_learner_states_with_the_tracking_expert(tiny_pool):
-    from cpalgo.bc import traffic_rollouts
+    from cpalgo.traffic.bc import traffic_rollouts
     from cpsim.config import JERK_LAT, JERK_LONG
 
     kw = dict(num_worlds=3, max_agents=16, seed=0, ego_replay=0.0)
@@ -128,7 +128,7 @@ def test_rollouts_relabel_the_learner_states_with_the_tracking_expert(tiny_pool)
     assert expert.obs.dtype == np.float16 and expert.obs.shape[0] == expert.actions.size == s_e.samples
     assert np.unique(expert.actions).size >= 3
     # the targets head's rule turns the expert's target accelerations back into its actions
-    from cpalgo.bc import targets_to_actions
+    from cpalgo.traffic.bc import targets_to_actions
 
     rebuilt = targets_to_actions(th.as_tensor(expert.targets), th.as_tensor(expert.obs.astype(np.float32)))
     assert (rebuilt.numpy() == expert.actions).mean() > 0.95
@@ -150,7 +150,7 @@ def test_rollouts_relabel_the_learner_states_with_the_tracking_expert(tiny_pool)
 
 
 def test_dagger_aggregates_rounds_and_checkpoints(tiny_pool, tmp_path):
-    from cpalgo.bc import BCPolicy, DaggerConfig, aggregate, dagger
+    from cpalgo.traffic.bc import BCPolicy, DaggerConfig, aggregate, dagger
 
     a = BCData(np.ones((2, 3), np.float16), np.array([1, 2]), np.zeros(2, np.float32), np.array([0, 1]))
     b = BCData(np.zeros((1, 3), np.float16), np.array([3]), np.zeros(1, np.float32), np.array([2]))
@@ -168,7 +168,7 @@ def test_dagger_aggregates_rounds_and_checkpoints(tiny_pool, tmp_path):
 
 
 def test_targets_head_regresses_and_acts_through_the_expert_rule(tmp_path):
-    from cpalgo.bc import TARGET_SCALE, targets_to_actions
+    from cpalgo.traffic.bc import TARGET_SCALE, targets_to_actions
 
     data = _synthetic(1500, d=24)
     data.obs[:, 1:3] = 0.0  # own accelerations 0: the rule's choice depends on the targets only

@@ -178,7 +178,7 @@ def test_train_anchor_imitation_warm_start(tmp_path):
 
 
 def test_train_anchor_with_the_teachers_imitation_term_ships_a_plain_recurrent_ppo(tmp_path):
-    """--teacher-coef: the PPO stage is cpalgo.teacher_ppo.TeacherPPO; the saved anchor is a
+    """--teacher-coef: the PPO stage is cpalgo.anchor.teacher_ppo.TeacherPPO; the saved anchor is a
     plain sb3-contrib RecurrentPPO with its weights."""
     from sb3_contrib import RecurrentPPO
 

@@ -1,5 +1,5 @@
 """Linear observation encoder, factorisation of a flat policy, and policy distillation
-(cpalgo.encoders, cpalgo.compress)."""
+(cpalgo.encoders, cpalgo.anchor.compress)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 import torch as th
 
 import cpsim
+from cpalgo.anchor.compress import DistillConfig, collect_teacher_episodes, distill_losses, distill_policy
 from cpalgo.common.policy_utils import policy_step_logits, zero_states
-from cpalgo.compress import DistillConfig, collect_teacher_episodes, distill_losses, distill_policy
 from cpalgo.encoders import (
     ConditionConcat,
     ConditionResidual,

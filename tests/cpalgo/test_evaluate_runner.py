@@ -241,7 +241,7 @@ def test_sb3_checkpoint_ego_and_traffic_in_every_regime(tasks, tmp_path):
     the log-imitation regime: all eight regimes in one run, deterministic across runs."""
     from sb3_contrib import RecurrentPPO
 
-    from cpalgo.bc import BCPolicy
+    from cpalgo.traffic.bc import BCPolicy
     from cpsim.envs.selfplay import SelfPlayVecEnv
 
     env = SelfPlayVecEnv([tasks[0].scenario], num_worlds=1, max_agents=4)

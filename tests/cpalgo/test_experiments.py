@@ -18,10 +18,11 @@ pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 from cpalgo.evaluate.metrics import OutcomeClass  # noqa: E402
 from cpalgo.experiments.grid import GridError, RunSpec, load_grid  # noqa: E402
 from cpalgo.experiments.runner import ray_available, run_experiment, runs_of  # noqa: E402
-from cpalgo.experiments.runs import run_dir, write_bytes_atomic  # noqa: E402
+from cpalgo.experiments.runs import run_dir  # noqa: E402
 from cpalgo.experiments.tables import collect_results, markdown_report, repaired, results_csv  # noqa: E402
 from cpalgo.methods.base import BudgetedCounterPlay  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
+from cpsim.atomic import write_bytes_atomic  # noqa: E402
 
 EPISODE = 40
 RECIPE = """cpsim/SelfPlay-v0:

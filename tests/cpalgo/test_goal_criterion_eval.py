@@ -9,8 +9,8 @@ from gymnasium import spaces
 
 pytest.importorskip("cpsim.simulator")
 
+from cpalgo.anchor.outcomes import expert_outcomes, selfplay_outcomes  # noqa: E402
 from cpalgo.evaluate import runner as R  # noqa: E402
-from cpalgo.selfplay_eval import expert_outcomes, selfplay_outcomes  # noqa: E402
 from cpsim.conditions import STYLE_MASK, deployment_condition  # noqa: E402
 from cpsim.scenario import generate  # noqa: E402
 from tests.cpsim.scenes import LANE_WIDTH, agent, make_scenario  # noqa: E402

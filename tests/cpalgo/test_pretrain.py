@@ -1,4 +1,4 @@
-"""DAgger warm start from the tracking expert (cpalgo.pretrain)."""
+"""DAgger warm start from the tracking expert (cpalgo.anchor.imitation)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch as th
 
 import cpsim
-from cpalgo.pretrain import ImitationConfig, collect_episodes, imitate_expert, imitation_losses
+from cpalgo.anchor.imitation import ImitationConfig, collect_episodes, imitate_expert, imitation_losses
 from cpsim.config import Controller
 from cpsim.expert import TrackingExpert
 

@@ -8,7 +8,7 @@ import torch as th
 
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
-from cpalgo.teacher_ppo import TeacherPPO, export_recurrent_ppo  # noqa: E402
+from cpalgo.anchor.teacher_ppo import TeacherPPO, export_recurrent_ppo  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 from cpsim.expert import make_expert  # noqa: E402
 from tests.cpalgo.fakes import minibatch_logits  # noqa: E402

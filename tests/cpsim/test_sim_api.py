@@ -20,7 +20,7 @@ NORMAL = cpsim.profile("normal")
 def test_known_fields_names_the_config_and_every_unknown_key():
     """The check behind every settings dataclass's from_dict (ImitationConfig, DistillConfig,
     EvalConfig, bc.TrainConfig): the unknown keys and the accepted ones, before anything is built."""
-    from cpalgo.bc import TrainConfig
+    from cpalgo.traffic.bc import TrainConfig
     from cpsim.config import known_fields
 
     @dataclasses.dataclass(frozen=True)
