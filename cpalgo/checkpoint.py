@@ -7,8 +7,9 @@ SB3's ``save`` writes the zip in place; we write to a temp file in the same fold
 from __future__ import annotations
 
 import os
+import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from stable_baselines3.common.callbacks import BaseCallback
 
@@ -23,7 +24,6 @@ def saved_data_keys(path: str | os.PathLike) -> set[str] | None:
     restore the behaviour of that time instead of the new default.
     """
     import json
-    import zipfile
 
     candidates = [Path(path)] if Path(path).suffix == ".zip" else [Path(path), Path(str(path) + ".zip")]
     for candidate in candidates:
@@ -36,13 +36,21 @@ def saved_data_keys(path: str | os.PathLike) -> set[str] | None:
     return None
 
 
-def save_model_atomic(model: Any, path: str | os.PathLike) -> Path:
-    """Save an SB3 model to ``path`` (``.zip`` appended when missing) atomically."""
+def save_model_atomic(model: Any, path: str | os.PathLike, extra_files: Mapping[str, bytes] | None = None) -> Path:
+    """Save an SB3 model to ``path`` (``.zip`` appended when missing) atomically.
+
+    ``extra_files``: name -> bytes, written into the same zip before it replaces ``path``,
+    so they always belong to these weights (SB3's loaders ignore entries they do not know).
+    """
     path = Path(path)
     if path.suffix != ".zip":
         path = path.with_suffix(path.suffix + ".zip") if path.suffix else path.with_suffix(".zip")
     with atomic_path(path, suffix=".zip.tmp") as tmp:  # a suffix, so SB3 appends no ".zip"
         model.save(tmp)
+        if extra_files:
+            with zipfile.ZipFile(tmp, "a", compression=zipfile.ZIP_DEFLATED) as archive:
+                for name, data in extra_files.items():
+                    archive.writestr(name, data)
     return path
 
 

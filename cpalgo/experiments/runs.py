@@ -3,11 +3,14 @@ resumable checkpoints, then evaluate it under its deployment conditions.
 
 Files of a run (``OUT/runs/<method>/seed<k>/``), every one written atomically:
 
-* ``checkpoint.zip`` + ``checkpoint.json``: the latest resumable state (model with its
-  optimiser, budget totals, step counters, method counters), every ``checkpoint_every``
-  generations. A killed run restarts from them (RNG streams, CounterPlay's searches
-  queued for the next generation and PPO-Opponent's older checkpoints are not kept: the
-  continuation is a faithful run, not a bit-identical one).
+* ``checkpoint.zip``: the latest resumable state, every ``checkpoint_every`` generations:
+  the model with its optimiser and, inside the same zip (``counterplay_state.json``), the
+  budget totals, step counters and method counters, so one rename replaces weights and
+  counters together and a kill at any moment leaves a matching pair.
+  ``checkpoint.json`` is a readable copy of those counters, written after the zip. A killed
+  run restarts from the zip (RNG streams, CounterPlay's searches queued for the next
+  generation and PPO-Opponent's older checkpoints are not kept: the continuation is a
+  faithful run, not a bit-identical one).
 * ``progress.json``: generation, B_post and timing after every generation.
 * ``model.zip`` + ``train.json``: the trained model and its summary (budget, counters, wall
   time); ``train.json`` marks the training as finished.
@@ -35,7 +38,8 @@ from cpalgo.experiments.grid import ANCHOR, GridConfig, RunSpec
 from cpsim.atomic import write_bytes_atomic
 
 __all__ = ["run_dir", "run_status", "execute_run", "train_run", "evaluate_columns", "load_columns",
-           "budget_state", "restore_budget_state", "write_bytes_atomic", "write_json_atomic"]
+           "budget_state", "restore_budget_state", "save_checkpoint", "read_checkpoint", "CHECKPOINT_STATE",
+           "write_bytes_atomic", "write_json_atomic"]
 
 Echo = Callable[[str], None]
 
@@ -87,7 +91,7 @@ def run_status(grid: GridConfig, out: str | os.PathLike, spec: RunSpec) -> str:
         return "done" if evals_done else "evaluate"
     if (folder / "train.json").is_file() and (folder / "model.zip").is_file():
         return "done" if evals_done else "evaluate"
-    if (folder / "checkpoint.zip").is_file() and (folder / "checkpoint.json").is_file():
+    if (folder / "checkpoint.zip").is_file():
         return "resume"
     return "new"
 
@@ -106,6 +110,54 @@ def budget_state(model: Any) -> dict[str, Any]:
         "n_updates": int(getattr(model, "_n_updates", 0)),
         "totals": {name: dict(getattr(model, name)) for name in _totals_attributes(model)},
     }
+
+
+#: The checkpoint's counters, inside checkpoint.zip (SB3's loaders ignore the entry).
+CHECKPOINT_STATE = "counterplay_state.json"
+
+
+def save_checkpoint(model: Any, folder: str | os.PathLike, **extra: Any) -> Path:
+    """``folder/checkpoint.zip``: the model and its :func:`budget_state` (plus ``extra``) in
+    one zip, replaced by one rename; then ``checkpoint.json``, a readable copy of the state
+    (:func:`read_checkpoint` does not need it). Returns the zip's path."""
+    from cpalgo.checkpoint import save_model_atomic
+
+    folder = Path(folder)
+    state = {**budget_state(model), **extra}
+    data = (json.dumps(state, indent=2, default=_json_default) + "\n").encode()
+    path = save_model_atomic(model, folder / "checkpoint.zip", extra_files={CHECKPOINT_STATE: data})
+    write_bytes_atomic(folder / "checkpoint.json", data)
+    return path
+
+
+def read_checkpoint(folder: str | os.PathLike) -> dict[str, Any] | None:
+    """The state saved with ``folder/checkpoint.zip``, or None when there is no zip.
+
+    Raises ``ValueError`` (or ``OSError`` / ``zipfile.BadZipFile``) when the zip does not
+    open, or holds no intact ``policy.pth``, or when its counters cannot be trusted: a zip
+    written before the state went inside it is paired with ``checkpoint.json`` only when
+    both record the same ``num_timesteps`` (a kill between their two renames left new
+    weights beside old counters otherwise).
+    """
+    folder = Path(folder)
+    zip_path, json_path = folder / "checkpoint.zip", folder / "checkpoint.json"
+    if not zip_path.is_file():
+        return None
+    with zipfile.ZipFile(zip_path) as archive:
+        names = archive.namelist()
+        if "policy.pth" not in names or archive.testzip() is not None:
+            raise zipfile.BadZipFile("no intact policy.pth")
+        if CHECKPOINT_STATE in names:
+            return json.loads(archive.read(CHECKPOINT_STATE))
+        saved = json.loads(archive.read("data")).get("num_timesteps") if "data" in names else None
+    if not json_path.is_file():
+        raise ValueError(f"{json_path.name} is missing and the zip holds no counters")
+    state = json.loads(json_path.read_text())
+    if not isinstance(state, dict) or saved is None or state.get("num_timesteps") != saved:
+        got = state.get("num_timesteps") if isinstance(state, dict) else None
+        raise ValueError(f"{json_path.name} is from another save than the weights "
+                         f"({got} against {saved} timesteps)")
+    return state
 
 
 def restore_budget_state(model: Any, state: dict[str, Any]) -> None:
@@ -157,8 +209,6 @@ def _progress_callback(grid: GridConfig, spec: RunSpec, folder: Path, echo: Echo
                        wall_before: float) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from cpalgo.checkpoint import save_model_atomic
-
     class RunProgress(BaseCallback):
         """Per generation: a progress line and ``progress.json``; resumable checkpoints."""
 
@@ -173,10 +223,7 @@ def _progress_callback(grid: GridConfig, spec: RunSpec, folder: Path, echo: Echo
         def _on_rollout_start(self) -> None:
             gens = int(self.model.budget.generations)
             if gens > 0 and gens % grid.checkpoint_every == 0 and gens != self.saved_at:
-                save_model_atomic(self.model, folder / "checkpoint.zip")
-                state = budget_state(self.model)
-                state["wall_s"] = wall_before + time.perf_counter() - start_wall
-                write_json_atomic(folder / "checkpoint.json", state)
+                save_checkpoint(self.model, folder, wall_s=wall_before + time.perf_counter() - start_wall)
                 self.saved_at = gens
 
         def _on_rollout_end(self) -> None:
@@ -198,21 +245,17 @@ def _progress_callback(grid: GridConfig, spec: RunSpec, folder: Path, echo: Echo
 
 
 def _readable_checkpoint(folder: Path, spec: RunSpec, echo: Echo | None) -> dict[str, Any] | None:
-    """The budget state of the run's checkpoint, or None when there is none. A checkpoint that
-    does not open (a truncated zip, a broken JSON) is moved aside as ``checkpoint.corrupt.*``
-    and the run starts over from the anchor, with a line that says so."""
+    """The budget state of the run's checkpoint (:func:`read_checkpoint`), or None when there
+    is none. A checkpoint that does not open (a truncated zip, broken counters) or whose
+    counters belong to another save is moved aside as ``checkpoint.corrupt.*`` and the run
+    starts over from the anchor, with a line that says so."""
     zip_path, json_path = folder / "checkpoint.zip", folder / "checkpoint.json"
-    if not (zip_path.is_file() and json_path.is_file()):
-        return None
     try:
-        state = json.loads(json_path.read_text())
-        with zipfile.ZipFile(zip_path) as archive:
-            if "policy.pth" not in archive.namelist() or archive.testzip() is not None:
-                raise zipfile.BadZipFile("no intact policy.pth")
-        return state
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+        return read_checkpoint(folder)
+    except (ValueError, OSError, KeyError, zipfile.BadZipFile) as exc:
         for path in (zip_path, json_path):
-            path.replace(path.with_name(f"checkpoint.corrupt{path.suffix}"))
+            if path.is_file():
+                path.replace(path.with_name(f"checkpoint.corrupt{path.suffix}"))
         if echo is not None:
             echo(f"[{spec.key}] checkpoint {zip_path} does not open ({exc}); moved aside, starting over")
         return None

@@ -218,12 +218,15 @@ def test_grid_resumes_skips_finished_runs_and_continues_killed_ones(files, tmp_p
     first = run_experiment(doc, out, backend="sequential", progress=False)
     assert first.ok and set(first.runs.values()) == {"done"}
     assert all(s == "done" for s in runs_of(load_grid(doc), out).values())
+    from cpalgo.experiments.runs import read_checkpoint
+
     spec = RunSpec("counterplay", 0)
     folder = run_dir(out, spec)
     train = json.loads((folder / "train.json").read_text())
     assert train["b_post"] >= 500 and train["generations"] >= 2
     checkpoint = json.loads((folder / "checkpoint.json").read_text())
     assert 0 < checkpoint["budget"]["generations"] < train["generations"]
+    assert read_checkpoint(folder) == checkpoint  # the counters inside the zip, which resumes
     # "kill" the counterplay run after its first checkpoint: only the checkpoint survives
     for name in ("train.json", "model.zip", "eval_normal.npz"):
         (folder / name).unlink()
