@@ -61,7 +61,7 @@ from cpalgo.counterplay.budget import Budget
 from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, collate_teachers, distill_loss
 from cpalgo.counterplay.driver import FAILURE_OUTCOMES, SearchDriver, SearchSettings, SearchStats
 from cpalgo.counterplay.records import check_keep_searches, keep_wave
-from cpalgo.policies import POLICY_ALIASES
+from cpalgo.policies import POLICY_ALIASES, BehaviorLstmPolicy
 from cpsim.conditions import PANEL, STYLE_MASK, resolve_condition
 
 if TYPE_CHECKING:
@@ -72,6 +72,14 @@ __all__ = ["CounterPlay", "FAILURE_OUTCOMES", "ANCHOR_NETWORK"]
 #: The shipped anchor's network, CounterPlay's default ``policy_kwargs``.
 ANCHOR_NETWORK: dict[str, Any] = dict(lstm_hidden_size=128, enable_critic_lstm=False,
                                       net_arch=dict(pi=[128, 128], vf=[128, 128]))
+
+
+def _default_network(policy: Any) -> dict[str, Any]:
+    """``policy_kwargs`` when none are given: the shipped anchor's network for the
+    sb3-contrib-shaped policies, the class's own defaults for BehaviorBench's shape."""
+    if policy == "BehaviorLstmPolicy" or (isinstance(policy, type) and issubclass(policy, BehaviorLstmPolicy)):
+        return {}
+    return deepcopy(ANCHOR_NETWORK)
 
 
 class CounterPlay(RecurrentPPO):
@@ -117,6 +125,13 @@ class CounterPlay(RecurrentPPO):
         max_searches: optional cap on searches per generation (None: the budget decides).
         keep_searches: searches kept per generation as tensor-free records for inspection
             (``cpalgo.counterplay.records``; 0 keeps nothing).
+        clip_reward: clamp every step's reward to [-c, c] before it enters the rollout
+            buffer (BehaviorBench's trainer uses 1.0; None: no clamp). Logged episode returns
+            stay unclamped.
+        schedule_timesteps: the length (in counted transitions) over which schedules of
+            progress (learning rate, clip range) run, whatever ``learn`` is asked for; a run
+            trained in several ``learn`` calls (pieces) then follows one schedule (None: SB3's
+            rule, the current ``learn`` call's total).
     """
 
     #: "MlpLstmPolicy" & co. are the fused-sequence versions (cpalgo.policies); pass
@@ -157,12 +172,14 @@ class CounterPlay(RecurrentPPO):
         mask_inactive: bool = True,
         max_searches: int | None = None,
         keep_searches: int = 4,
+        clip_reward: float | None = None,
+        schedule_timesteps: int | None = None,
         _init_setup_model: bool = True,
         **ppo_kwargs: Any,
     ):
         super().__init__(
             policy, env, n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs,
-            policy_kwargs=deepcopy(ANCHOR_NETWORK) if policy_kwargs is None else policy_kwargs,
+            policy_kwargs=_default_network(policy) if policy_kwargs is None else policy_kwargs,
             _init_setup_model=False, **ppo_kwargs,
         )
         for name, flag in (("counterfactual", counterfactual), ("shared_randomness", shared_randomness),
@@ -193,6 +210,15 @@ class CounterPlay(RecurrentPPO):
         self.mask_inactive = bool(mask_inactive)
         self.max_searches = max_searches
         self.keep_searches = check_keep_searches(keep_searches)
+        if clip_reward is not None and (isinstance(clip_reward, bool) or not isinstance(clip_reward, (int, float))
+                                        or not np.isfinite(clip_reward) or clip_reward <= 0):
+            raise ValueError(f"clip_reward: expected None or a number > 0, got {clip_reward!r}")
+        self.clip_reward = None if clip_reward is None else float(clip_reward)
+        if schedule_timesteps is not None and (isinstance(schedule_timesteps, bool)
+                                               or not isinstance(schedule_timesteps, (int, np.integer))
+                                               or schedule_timesteps < 1):
+            raise ValueError(f"schedule_timesteps: expected None or a whole number >= 1, got {schedule_timesteps!r}")
+        self.schedule_timesteps = None if schedule_timesteps is None else int(schedule_timesteps)
         self._validate_settings()
         self.budget = Budget(branch_cap=float(branch_cap), post_budget=post_budget)
         #: running totals of every generation's search counts (SearchStats.as_dict keys)
@@ -346,6 +372,9 @@ class CounterPlay(RecurrentPPO):
                 setattr(self, name, value)
 
     # ================================================================== learn
+    def _update_current_progress_remaining(self, num_timesteps: int, total_timesteps: int) -> None:
+        super()._update_current_progress_remaining(num_timesteps, self.schedule_timesteps or total_timesteps)
+
     def _setup_learn(self, total_timesteps: int, callback: MaybeCallback = None, reset_num_timesteps: bool = True,
                      tb_log_name: str = "run", progress_bar: bool = False) -> tuple[int, BaseCallback]:
         previous_obs = self._last_obs
@@ -430,6 +459,8 @@ class CounterPlay(RecurrentPPO):
                 clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
 
             new_obs, rewards, dones, infos = env.step(clipped_actions)
+            if self.clip_reward is not None:  # BehaviorBench's trainer clamps every step's reward
+                rewards = np.clip(rewards, -self.clip_reward, self.clip_reward)
 
             self.num_timesteps += self._counted_transitions(env)
 

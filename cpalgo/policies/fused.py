@@ -40,7 +40,6 @@ __all__ = [
     "MlpLstmPolicy",
     "CnnLstmPolicy",
     "MultiInputLstmPolicy",
-    "POLICY_ALIASES",
 ]
 
 LSTMState = tuple[th.Tensor, th.Tensor]
@@ -206,11 +205,3 @@ class CnnLstmPolicy(FusedLstmMixin, RecurrentActorCriticCnnPolicy):
 
 class MultiInputLstmPolicy(FusedLstmMixin, RecurrentMultiInputActorCriticPolicy):
     """:class:`RecurrentMultiInputActorCriticPolicy` with the fused sequence LSTM."""
-
-
-#: names accepted by ``CounterPlay(policy=...)``: the fused versions of sb3-contrib's
-POLICY_ALIASES: dict[str, type[RecurrentActorCriticPolicy]] = {
-    "MlpLstmPolicy": MlpLstmPolicy,
-    "CnnLstmPolicy": CnnLstmPolicy,
-    "MultiInputLstmPolicy": MultiInputLstmPolicy,
-}
