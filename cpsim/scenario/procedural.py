@@ -575,10 +575,10 @@ class _FamilySpec:
     late_fraction: float             # share of traffic that enters after step 0
     moving_trucks: bool
     # rivals are timed to leave the shared zone (not to enter it) when the ego reaches it, and
-    # the traffic loop adds no untimed rival (the fallback draw, used only when no timed one
-    # fits, still may): for a long shared zone (the parked family's bypass, 50-90 m of the
-    # oncoming lane) an oncoming car timed to *enter* it with the ego holds the ego back for
-    # the 6-8 s it takes to pass, and the ego's log then ends short of its goal
+    # no rival is placed untimed (neither by the traffic loop nor by the fallback draw: a draw
+    # where no timed rival fits is rejected): for a long shared zone (the parked family's
+    # bypass, 50-90 m of the oncoming lane) an oncoming car that enters it with the ego holds
+    # the ego back for the 6-8 s it takes to pass, and the ego's log then ends short of its goal
     rivals_leave_first: bool = False
     rival_eta_scale: float = 1.0     # rivals are timed to reach their meeting point at this x the ego's ETA
 
@@ -757,6 +757,11 @@ class _Placer:
             speed = rng.uniform(0.5, 1.0) * self.speed_at(r, s_r, rng.uniform(*self.spec.speed))
             xy, heading = self.pose(r, s_r)
             if self.fits(xy, heading, length, width, speed):
+                if self.spec.rivals_leave_first:
+                    # this rival would be untimed: it may enter the long shared zone with the
+                    # ego and hold it back. Rejected where it would have been added, so the
+                    # random draws (and the scenes) of every other seed stay as they were
+                    raise _Reject("no timed rival fits")
                 self.add(r, s_r, speed, 0, length, width)
                 count_rivals = 1
                 break

@@ -244,6 +244,30 @@ def test_parked_ego_waits_for_oncoming_traffic_and_still_reaches_its_goal():
     assert np.mean(to_goal) < 65.0, to_goal
 
 
+@pytest.mark.parametrize("family", ["parked", "intersection"])
+def test_the_parked_family_never_places_an_untimed_rival(family):
+    """When no rival can be timed (made impossible here: every timed position lies before
+    the route's start), the fallback places one anywhere before the conflict zone. Parked
+    rivals must leave the bypass before the ego reaches it, so there the draw is rejected
+    instead, over many seeds; other families still take the fallback rival."""
+    import dataclasses
+
+    spec = dataclasses.replace(proc._SPECS[family], rival_eta_scale=1e6)
+    placed = 0
+    for seed in range(200 if family == "parked" else 20):
+        rng = np.random.default_rng([proc._family_index(family), seed])
+        try:
+            proc._build_once(family, seed, rng, spec)
+            placed += 1
+        except proc._Reject as exc:
+            if family == "parked":
+                assert str(exc) in ("no timed rival fits", "no agent crosses or joins the ego's route"), str(exc)
+    if family == "parked":
+        assert placed == 0
+    else:
+        assert placed > 0  # the fallback rival is what made these scenes
+
+
 def test_parked_vehicles_and_late_entries(scenes):
     parked_seen = late_seen = 0
     for (family, seed), scene in scenes.items():
