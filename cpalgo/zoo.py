@@ -11,6 +11,10 @@ What it adds to rl-zoo3 before handing over to its own ``train`` / ``enjoy`` ent
   with ``n_envs / max_agents`` worlds from the YAML's ``env_kwargs``. So in our YAML
   files ``n_envs`` counts agent slots, not processes.
 
+Before rl-zoo3 starts, ``train`` checks the recipe's keys (:func:`check_train_recipe`):
+rl-zoo3 hands every key it does not read itself to the algorithm's constructor, so a
+misspelled one would end in a traceback; here it is one line naming the file and the key.
+
 ``-f file.yml`` is read as ``--conf-file file.yml`` (rl-zoo3's own ``-f`` is the log folder,
 which stays available as ``--log-folder``). ``zoo/NAME`` after ``-f`` / ``--conf-file`` /
 ``-i`` / ``--trained-agent`` names the shipped file when no such file exists
@@ -29,7 +33,10 @@ it only carries its settings, and ``reset`` / ``step`` explain how to use it ins
 
 from __future__ import annotations
 
+import argparse
+import difflib
 import math
+import os
 import sys
 from typing import Any, Callable, Sequence
 
@@ -222,6 +229,73 @@ def _translate_config_flag(args: list[str]) -> list[str]:
     return out
 
 
+#: Keys of a zoo entry that rl-zoo3 reads itself; it hands every other key to the
+#: algorithm's constructor (``--algo``), where a misspelled one ends in a traceback.
+ZOO_ENTRY_KEYS = frozenset({"n_envs", "n_timesteps", "policy", "env_kwargs", "normalize", "monitor_kwargs",
+                            "frame_stack", "env_wrapper", "vec_env_wrapper", "callback", "noise_type", "noise_std"})
+
+
+def _train_options(args: Sequence[str]) -> argparse.Namespace:
+    """The rl-zoo3 ``train`` options this launcher checks (the rest goes to rl-zoo3 as given)."""
+    p = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    p.add_argument("--algo", default="ppo")
+    p.add_argument("--env", default="CartPole-v1")
+    p.add_argument("-conf", "--conf-file", default=None)
+    p.add_argument("-params", "--hyperparams", nargs="+", default=None)
+    return p.parse_known_args(list(args))[0]
+
+
+def _unknown_keys(keys: Sequence[str], known: set[str], where: str, algo_class: type) -> ValueError:
+    """The error for ``keys`` (each with its nearest known key, when one is close)."""
+    named = []
+    for key in keys:
+        close = difflib.get_close_matches(key, sorted(known), n=1)
+        named.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    return ValueError(f"{where}: unknown key{'s' if len(keys) > 1 else ''} {', '.join(named)}: neither an rl-zoo3 "
+                      f"setting nor an argument of {algo_class.__name__}")
+
+
+def check_train_recipe(args: Sequence[str], algos: dict[str, type]) -> None:
+    """Check the recipe keys of an rl-zoo3 ``train`` command line before rl-zoo3 runs it.
+
+    The entry rl-zoo3 would read (``--env``'s, else ``default``) of a YAML ``--conf-file``,
+    and the ``-params key:value`` overrides, may hold only :data:`ZOO_ENTRY_KEYS` and
+    constructor arguments of ``--algo``'s class (``algos``: rl-zoo3's ``ALGOS``). Raises
+    ``ValueError`` naming the file, the entry and every unknown key. An unknown ``--algo``, a missing
+    or non-YAML file are left to rl-zoo3 (it reports them in one line).
+    """
+    import yaml
+
+    from cpalgo.methods import algorithm_parameters
+
+    opts = _train_options(args)
+    algo_class = algos.get(opts.algo)
+    if algo_class is None:
+        return
+    known = set(ZOO_ENTRY_KEYS) | algorithm_parameters(algo_class)
+    conf = opts.conf_file
+    if conf is not None and conf.endswith((".yml", ".yaml")) and os.path.isfile(conf):
+        with open(conf) as fh:
+            try:
+                doc = yaml.safe_load(fh)
+            except yaml.YAMLError as exc:
+                raise ValueError(f"{conf}: not valid YAML: {exc}") from None
+        if not isinstance(doc, dict):
+            raise ValueError(f"{conf}: expected a mapping of env ids to hyperparameters")
+        name = opts.env if opts.env in doc else "default" if "default" in doc else None
+        if name is None:
+            raise ValueError(f"{conf}: no entry for env id {opts.env!r} (and no 'default' entry)")
+        entry = doc[name]
+        if not isinstance(entry, dict):
+            raise ValueError(f"{conf}: {name}: expected a mapping of hyperparameters, got {entry!r}")
+        unknown = [str(key) for key in entry if key not in known]
+        if unknown:
+            raise _unknown_keys(unknown, known, f"{conf}: {name}", algo_class)
+    unknown = [key for key in (item.split(":")[0] for item in opts.hyperparams or ()) if key not in known]
+    if unknown:
+        raise _unknown_keys(unknown, known, "-params", algo_class)
+
+
 def _enjoy_n_envs(args: list[str]) -> list[str]:
     """rl-zoo3's enjoy treats ``--n-envs 1`` (its default) as one scalar env, but one
     self-play world already has ``max_agents`` env indices: default to 64 slots."""
@@ -241,6 +315,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     command, rest = argv[0], _translate_config_flag(argv[1:])
     register()
     from rl_zoo3.exp_manager import ExperimentManager
+
+    if command == "train":
+        import rl_zoo3
+
+        try:
+            check_train_recipe(rest, {**rl_zoo3.ALGOS, "counterplay": sys.modules["cpalgo"].CounterPlay})
+        except ValueError as exc:
+            print(f"python -m cpalgo.zoo train: error: {exc}", file=sys.stderr)
+            return 2
 
     if _uses_selfplay(rest):
         import rl_zoo3.exp_manager

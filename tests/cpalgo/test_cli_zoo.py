@@ -224,6 +224,47 @@ def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch, 
     assert "goal" in lines[-1] and "mean reward" in lines[-1]
 
 
+def test_zoo_train_names_a_misspelled_recipe_key_before_rl_zoo3_starts(tmp_path, monkeypatch, capsys):
+    """rl-zoo3 hands every key it does not read itself to the algorithm's constructor, which
+    fails with a traceback: the launcher checks the keys first and names file, entry and key."""
+    import rl_zoo3
+    import rl_zoo3.train
+
+    monkeypatch.setattr(rl_zoo3.train, "train", lambda: pytest.fail("rl-zoo3 started"))
+    doc = yaml.safe_load((ZOO_DIR / "anchor.yml").read_text())
+    entry = doc[SELFPLAY_ENV_ID]
+    entry["lerning_rate"] = entry.pop("learning_rate")
+    bad = tmp_path / "bad.yml"
+    bad.write_text(yaml.safe_dump(doc))
+    assert zoo.main(["train", "--algo", "ppo_lstm", "--env", SELFPLAY_ENV_ID, "-f", str(bad), "-n", "8"]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}: {SELFPLAY_ENV_ID}: unknown key 'lerning_rate'" in err and "RecurrentPPO" in err
+    assert "(did you mean 'learning_rate'?)" in err and "Traceback" not in err
+
+    # a CounterPlay setting is not an argument of RecurrentPPO; -params overrides are checked too
+    assert zoo.main(["train", "--algo", "ppo_lstm", "--env", SELFPLAY_ENV_ID, "-f", "zoo/counterplay.yml"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown keys " in err and "'backtrack'" in err and "'rho'" in err and "'n_steps'" not in err
+    assert zoo.main(["train", "--algo", "counterplay", "--env", SELFPLAY_ENV_ID, "-f", "zoo/counterplay.yml",
+                     "-params", "rhoo:0.5"]) == 2
+    assert "-params: unknown key 'rhoo'" in capsys.readouterr().err
+    other = tmp_path / "other.yml"
+    other.write_text(yaml.safe_dump({"Other-v0": {"policy": "MlpPolicy"}}))
+    assert zoo.main(["train", "--algo", "ppo_lstm", "--env", SELFPLAY_ENV_ID, "-f", str(other)]) == 2
+    assert "no entry for env id" in capsys.readouterr().err
+
+    # every shipped recipe passes for the algorithm it is written for
+    zoo.register()
+    from cpalgo import CounterPlay
+
+    algos = {**rl_zoo3.ALGOS, "counterplay": CounterPlay}
+    for name, algo in (("anchor.yml", "ppo_lstm"), ("anchor_finetune.yml", "ppo_lstm"), ("anchor_teacher.yml", "ppo_lstm"),
+                       ("ppo_traffic.yml", "ppo_lstm"), ("counterplay.yml", "counterplay"),
+                       ("counterplay_fast.yml", "counterplay")):
+        zoo.check_train_recipe(["--algo", algo, "--env", SELFPLAY_ENV_ID, "--conf-file", str(ZOO_DIR / name),
+                                "-params", "n_epochs:2"], algos)
+
+
 def test_selfplay_settings_carrier():
     import gymnasium
 
