@@ -228,7 +228,56 @@ def cmd_pool(args: argparse.Namespace) -> int:
 
 
 # ----------------------------------------------------------------------------- anchor
+_RUN_CONFLICTS = ("out", "init", "imitate", "imitate_only", "teacher_coef", "teacher_style_pairs", "drop_optimizer_state")
+
+
+def _train_anchor_run(args: argparse.Namespace) -> int:
+    """``--run-dir`` / ``--resume``: self-play PPO from scratch in resumable segments."""
+    from cpalgo.anchor.selfplay import AnchorRunSettings, train_anchor_run
+
+    defaults = {"out": "runs/anchor/anchor.zip", "init": None, "imitate": 0, "imitate_only": False,
+                "teacher_coef": 0.0, "teacher_style_pairs": 0, "drop_optimizer_state": False}
+    used = [f"--{k.replace('_', '-')}" for k in _RUN_CONFLICTS if getattr(args, k) != defaults[k]]
+    if used:
+        raise UsageError(f"{', '.join(used)}: not used by a --run-dir / --resume run (self-play PPO from scratch)")
+    stop = None if args.stop_after is None else 60.0 * args.stop_after
+    command = "counterplay " + " ".join(sys.argv[1:]) if sys.argv and sys.argv[0] else None
+    try:
+        if args.resume:
+            if args.run_dir:
+                raise UsageError("--run-dir / --resume: give one (--resume RUN_DIR continues that run)")
+            if not os.path.isdir(args.resume):
+                raise UsageError(f"--resume: no such folder {args.resume!r}")
+            train_anchor_run(args.resume, resume=True, stop_after_s=stop, command=command)
+            return 0
+        settings = AnchorRunSettings(
+            recipe=args.config, seed=args.seed, timesteps=args.timesteps or load_recipe(args.config).n_timesteps,
+            segment_timesteps=args.segment, pool_size=args.pool_size, womd_dir=args.add_womd,
+            eval_tasks=args.eval_tasks, threads=args.threads)
+        train_anchor_run(args.run_dir, settings, stop_after_s=stop, command=command)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    return 0
+
+
+def cmd_curve(args: argparse.Namespace) -> int:
+    from cpalgo.anchor.selfplay import plot_curve, read_curve
+
+    try:
+        path = plot_curve(args.run_dir, args.out)
+        rows = read_curve(args.run_dir)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    last = rows[-1]
+    print(f"{path}: {len(rows)} points, last at {last['timesteps'] / 1e6:.1f}M transitions "
+          f"({last['wall_s'] / 3600:.2f} h): held-out goal aggressive / normal / cautious "
+          f"{last['aggressive_goal']:.1%} / {last['normal_goal']:.1%} / {last['cautious_goal']:.1%}")
+    return 0
+
+
 def cmd_train_anchor(args: argparse.Namespace) -> int:
+    if args.run_dir or args.resume:
+        return _train_anchor_run(args)
     _set_threads(args.threads)
 
     from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic
@@ -640,7 +689,26 @@ def build_parser() -> argparse.ArgumentParser:
                     help="save the final checkpoint with a fresh optimiser (weights only: about half the size)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256, metavar="N",
                     help="held-out procedural tasks evaluated at the end")
+    ta.add_argument("--run-dir", default=None, metavar="DIR",
+                    help="self-play PPO from scratch in resumable segments, in this new run folder (checkpoint.zip, "
+                         "curve.csv, run.json; cpalgo.anchor.selfplay); --timesteps is the run's whole budget")
+    ta.add_argument("--resume", default=None, metavar="RUN_DIR",
+                    help="continue the run in RUN_DIR from its last checkpoint (settings from its run.json)")
+    ta.add_argument("--segment", type=_positive_int, default=10_000_000, metavar="N",
+                    help="with --run-dir: transitions between checkpoints, curve points and pool draws")
+    ta.add_argument("--pool-size", type=_positive_int, default=512, metavar="N",
+                    help="with --run-dir: procedural training scenes drawn for every segment")
+    ta.add_argument("--stop-after", type=float, default=None, metavar="MINUTES",
+                    help="with --run-dir / --resume: stop cleanly after the segment that passes MINUTES of this "
+                         "piece (a STOP file in the run folder does the same)")
     ta.set_defaults(func=cmd_train_anchor)
+
+    cu = add("curve", "draw the learning curve of an anchor run folder (--run-dir)",
+             "Draw curve.png of a `counterplay train-anchor --run-dir` folder from its curve.csv: held-out goal rate "
+             "per style, the normal style's failure classes, the critic's explained variance.")
+    cu.add_argument("run_dir", metavar="RUN_DIR", help="the run folder")
+    cu.add_argument("--out", default=None, metavar="PNG", help="image to write (default: RUN_DIR/curve.png)")
+    cu.set_defaults(func=cmd_curve)
 
     oc = add("outcomes", "self-play outcome rates of a checkpoint on held-out tasks",
              "Self-play outcome rates (goal, collision, off-road, timeout) of a checkpoint on held-out "

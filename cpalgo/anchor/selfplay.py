@@ -1,0 +1,358 @@
+"""Self-play PPO for the anchor, from scratch, in resumable pieces, with a learning curve.
+
+A run lives in one folder::
+
+    run.json         the run's settings (recipe, seed, budget, segment length, pools, ...)
+    checkpoint.zip   the latest checkpoint: weights, optimiser, counters, every RNG state,
+                     the curve so far (one file, replaced atomically)
+    curve.csv        one row per segment (rewritten from the checkpoint after each save)
+    curve.png        ``counterplay curve RUN_DIR``
+    commands.txt     every piece's command line, in order
+
+Training is cut into *segments* of ``segment_timesteps`` counted (live) transitions. Each
+segment builds a fresh :class:`cpsim.SelfPlayVecEnv` on a newly drawn procedural pool
+(``pool_size`` scenes, seeded by the run seed and the segment index; BehaviorBench resamples
+its maps the same way) plus the WOMD training scenes, and starts it from a reset; after
+the segment the policy is measured on fixed held-out tasks under the aggressive, normal
+and cautious profiles and the checkpoint is written. Because a segment depends only on
+what the checkpoint holds (parameters, optimiser moments, ``num_timesteps``, the torch /
+NumPy / Python RNG states) and on its index, a run resumed from a checkpoint computes
+exactly what the uninterrupted run computes, and a killed piece loses at most the
+transitions since its last checkpoint. One learning-rate schedule runs over the whole
+budget (``CounterPlay(schedule_timesteps=...)``).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+import random
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+
+__all__ = ["AnchorRunSettings", "CURVE_COLUMNS", "STYLES", "train_anchor_run", "read_curve", "plot_curve",
+           "RUN_FILE", "CHECKPOINT_FILE", "CURVE_FILE", "STOP_FILE"]
+
+RUN_FILE = "run.json"
+CHECKPOINT_FILE = "checkpoint.zip"
+CURVE_FILE = "curve.csv"
+PLOT_FILE = "curve.png"
+COMMANDS_FILE = "commands.txt"
+#: create this file in the run folder to stop the run cleanly after the current segment
+STOP_FILE = "STOP"
+STYLES: tuple[str, ...] = ("aggressive", "normal", "cautious")
+OUTCOMES: tuple[str, ...] = ("goal", "collision", "offroad", "timeout")
+CURVE_COLUMNS: tuple[str, ...] = (
+    ("segment", "timesteps", "wall_s", "learning_rate", "explained_variance", "train_episodes")
+    + tuple(f"train_{o}" for o in OUTCOMES)
+    + tuple(f"{s}_{o}" for s in STYLES for o in OUTCOMES)
+)
+#: seed of the held-out procedural tasks (``cpsim.scenario.eval_pool``), shared with the CLI
+HELD_OUT_SEED = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class AnchorRunSettings:
+    """What a run is; written to ``run.json`` at the start and read back by every piece.
+
+    Attributes:
+        recipe: zoo YAML of the algorithm and env (``zoo/anchor.yml``); its contents are
+            copied into ``run.json`` so later edits of the file cannot change a running run.
+        seed: seeds the model, the pools and the envs.
+        timesteps: the run's budget in counted (live) agent transitions; the schedules run
+            over it.
+        segment_timesteps: transitions between checkpoints (and curve points, pool draws).
+        pool_size: procedural training scenes drawn per segment.
+        womd_dir: folder of WOMD scenes added to every segment's pool (None: none).
+        eval_tasks: held-out procedural tasks of the curve (``eval_pool(n, 0)``).
+        threads: torch intra-op threads (None: torch's choice).
+    """
+
+    recipe: str
+    seed: int = 0
+    timesteps: int = 200_000_000
+    segment_timesteps: int = 10_000_000
+    pool_size: int = 512
+    womd_dir: str | None = None
+    eval_tasks: int = 200
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("seed", "timesteps", "segment_timesteps", "pool_size", "eval_tasks"):
+            v = getattr(self, name)
+            low = 0 if name == "seed" else 1
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+                raise ValueError(f"{name}: expected a whole number >= {low}, got {v!r}")
+        if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
+            raise ValueError(f"threads: expected None or a whole number >= 1, got {self.threads!r}")
+        if self.womd_dir is not None and not os.path.isdir(self.womd_dir):
+            raise ValueError(f"womd_dir: no such folder {self.womd_dir!r}")
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any], source: str = RUN_FILE) -> "AnchorRunSettings":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(doc) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown settings {unknown}; accepted: {sorted(known)}")
+        return cls(**doc)
+
+
+class _SegmentStats(BaseCallback):
+    """Training-episode outcomes and the critic's explained variance over live slots."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.outcomes = dict.fromkeys(OUTCOMES, 0)
+        self.ev: list[float] = []
+
+    def _on_step(self) -> bool:
+        for info in self.locals.get("infos", ()):
+            outcome = info.get("outcome")
+            if outcome in self.outcomes:
+                self.outcomes[outcome] += 1
+        return True
+
+    def _on_rollout_end(self) -> None:
+        buf = self.model.rollout_buffer
+        active = getattr(buf, "active", None)
+        mask = np.ones_like(buf.values, bool) if active is None else active.astype(bool)
+        values, returns = buf.values[mask], buf.returns[mask]
+        var = float(np.var(returns))
+        if values.size > 1 and var > 0:
+            self.ev.append(1.0 - float(np.var(returns - values)) / var)
+
+
+def _rng_state() -> dict[str, Any]:
+    return {"torch": th.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def _set_rng_state(state: dict[str, Any]) -> None:
+    th.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def _segment_pool(settings: AnchorRunSettings, segment: int, womd: Sequence[Any]) -> list[Any]:
+    from cpsim.scenario import train_pool
+
+    # one seed per (run, segment): pools never repeat across segments or runs of other seeds
+    pool_seed = int(np.random.SeedSequence([settings.seed, segment]).generate_state(1)[0])
+    return list(train_pool(settings.pool_size, pool_seed)) + list(womd)
+
+
+def _build_env(recipe: Any, settings: AnchorRunSettings, segment: int, womd: Sequence[Any]) -> Any:
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from cpsim import SelfPlayVecEnv
+
+    kwargs = {k: v for k, v in recipe.env_kwargs.items() if k not in ("family", "num_scenarios", "womd_dir", "seed")}
+    env_seed = int(np.random.SeedSequence([settings.seed, segment, 1]).generate_state(1)[0])
+    env = SelfPlayVecEnv(scenarios=_segment_pool(settings, segment, womd), num_worlds=recipe.num_worlds,
+                         seed=env_seed, **kwargs)
+    return VecMonitor(env)
+
+
+def _held_out(settings: AnchorRunSettings) -> list[Any]:
+    from cpsim.scenario import eval_pool
+
+    return list(eval_pool(settings.eval_tasks, seed=HELD_OUT_SEED))
+
+
+def _evaluate(model: Any, recipe: Any, tasks: Sequence[Any]) -> dict[str, float]:
+    from cpalgo.anchor.outcomes import selfplay_outcomes
+
+    config = {k: recipe.env_kwargs[k] for k in ("dynamics",) if k in recipe.env_kwargs}
+    row: dict[str, float] = {}
+    for style in STYLES:
+        rates = selfplay_outcomes(model, tasks, condition=style, max_agents=int(recipe.env_kwargs.get("max_agents", 8)),
+                                  config=config or None)
+        for o in OUTCOMES:
+            row[f"{style}_{o}"] = float(getattr(rates, o))
+    return row
+
+
+def _write_curve(run_dir: Path, rows: Sequence[dict[str, Any]]) -> None:
+    from cpsim.atomic import atomic_path
+
+    with atomic_path(run_dir / CURVE_FILE) as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(CURVE_COLUMNS))
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: row.get(k, "") for k in CURVE_COLUMNS})
+
+
+def read_curve(run_dir: str | os.PathLike) -> list[dict[str, float]]:
+    """The rows of a run folder's ``curve.csv`` (numbers as floats)."""
+    path = Path(run_dir) / CURVE_FILE
+    if not path.is_file():
+        raise ValueError(f"run_dir: {str(run_dir)!r} has no {CURVE_FILE} (not a train-anchor run folder?)")
+    with open(path, newline="") as fh:
+        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(fh)]
+
+
+def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
+    """Draw ``curve.png``: held-out goal rate per style and the normal style's failure
+    classes against transitions (wall time on the top axis), and the critic's explained
+    variance. Returns the image's path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cpsim.atomic import atomic_path
+
+    rows = read_curve(run_dir)
+    if not rows:
+        raise ValueError(f"run_dir: {str(run_dir)!r}: {CURVE_FILE} has no rows yet")
+    x = np.array([r["timesteps"] for r in rows]) / 1e6
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    for style, color in zip(STYLES, ("tab:red", "tab:blue", "tab:green")):
+        axes[0].plot(x, [100 * r[f"{style}_goal"] for r in rows], marker="o", ms=3, color=color, label=style)
+    axes[0].plot(x, [100 * r["train_goal"] for r in rows], ls="--", color="gray", label="training (p_train)")
+    axes[0].set(title="goal rate, held-out tasks", xlabel="transitions (M)", ylabel="%")
+    axes[0].legend(fontsize=8)
+    for o, color in zip(OUTCOMES[1:], ("tab:red", "tab:orange", "tab:purple")):
+        axes[1].plot(x, [100 * r[f"normal_{o}"] for r in rows], marker="o", ms=3, color=color, label=o)
+    axes[1].set(title="normal style: failures", xlabel="transitions (M)", ylabel="%")
+    axes[1].legend(fontsize=8)
+    axes[2].plot(x, [r.get("explained_variance", np.nan) for r in rows], marker="o", ms=3)
+    axes[2].set(title="critic explained variance", xlabel="transitions (M)")
+    top = axes[0].secondary_xaxis("top", functions=(
+        lambda v: np.interp(v, x, [r["wall_s"] / 3600 for r in rows]),
+        lambda h: np.interp(h, [r["wall_s"] / 3600 for r in rows], x)))
+    top.set_xlabel("wall time (h)")
+    fig.tight_layout()
+    path = Path(out) if out is not None else Path(run_dir) / PLOT_FILE
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+def _new_model(recipe: Any, settings: AnchorRunSettings, env: Any) -> Any:
+    from cpalgo.counterplay.algorithm import CounterPlay
+
+    kwargs = dict(recipe.algo_kwargs)
+    kwargs.pop("schedule_timesteps", None)
+    return CounterPlay(recipe.policy, env, counterfactual=False, seed=settings.seed,
+                       schedule_timesteps=settings.timesteps, **kwargs)
+
+
+def _recipe_from_run(run_dir: Path, doc: dict[str, Any]) -> Any:
+    from cpalgo.recipes import load_recipe
+
+    path = run_dir / "recipe.yml"
+    if not path.is_file():
+        raise ValueError(f"resume: {run_dir} has no recipe.yml (not a train-anchor run folder?)")
+    return load_recipe(path)
+
+
+def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | None = None, *,
+                     resume: bool = False, stop_after_s: float | None = None, command: str | None = None,
+                     log: Callable[[str], None] = print) -> Any:
+    """Start (``settings`` given) or resume (``resume=True``) the run in ``run_dir``.
+
+    Runs segments until the budget is spent, ``stop_after_s`` seconds of this piece have
+    passed (checked after each segment), or a ``STOP`` file appears in the run folder.
+    Returns the model. Raises ``ValueError`` naming the folder when it is not a run folder
+    (resume) or already holds one (start).
+    """
+    from cpalgo.checkpoint import save_model_atomic
+    from cpalgo.counterplay.algorithm import CounterPlay
+    from cpalgo.recipes import load_recipe
+    from cpsim.atomic import atomic_path
+
+    run_dir = Path(run_dir)
+    if resume:
+        if settings is not None:
+            raise ValueError("settings: a resumed run reads its settings from run.json; give none")
+        if not (run_dir / RUN_FILE).is_file() or not (run_dir / CHECKPOINT_FILE).is_file():
+            raise ValueError(f"resume: {str(run_dir)!r} holds no {RUN_FILE} and {CHECKPOINT_FILE}")
+        doc = json.loads((run_dir / RUN_FILE).read_text())
+        settings = AnchorRunSettings.from_dict(doc["settings"], str(run_dir / RUN_FILE))
+        recipe = _recipe_from_run(run_dir, doc)
+    else:
+        if settings is None:
+            raise ValueError("settings: needed to start a run")
+        if (run_dir / CHECKPOINT_FILE).exists() or (run_dir / RUN_FILE).exists():
+            raise ValueError(f"run_dir: {str(run_dir)!r} already holds a run; resume it with --resume")
+        recipe = load_recipe(settings.recipe)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        with atomic_path(run_dir / "recipe.yml") as tmp:
+            Path(tmp).write_text(Path(recipe.path).read_text())
+        with atomic_path(run_dir / RUN_FILE) as tmp:
+            Path(tmp).write_text(json.dumps({"settings": dataclasses.asdict(settings)}, indent=2) + "\n")
+        recipe = load_recipe(run_dir / "recipe.yml")
+    if settings.threads is not None:
+        th.set_num_threads(settings.threads)
+    if command:
+        with open(run_dir / COMMANDS_FILE, "a") as fh:
+            fh.write(command + "\n")
+
+    womd: list[Any] = []
+    if settings.womd_dir is not None:
+        from cpsim.scenario import load_dir
+
+        womd = list(load_dir(settings.womd_dir)[0])
+    tasks = _held_out(settings)
+
+    if resume:
+        model = CounterPlay.load(run_dir / CHECKPOINT_FILE, device="cpu")
+        state = dict(model.resume_state)
+        _set_rng_state(state["rng"])
+        log(f"resumed {run_dir} at {model.num_timesteps:,} transitions (segment {state['segment']})")
+    else:
+        state = {"segment": 0, "wall_s": 0.0, "rows": []}
+        model = None
+
+    start = time.perf_counter()
+    while (model.num_timesteps if model is not None else 0) < settings.timesteps:
+        segment = int(state["segment"])
+        env = _build_env(recipe, settings, segment, womd)
+        if model is None:
+            model = _new_model(recipe, settings, env)
+        else:
+            model.set_env(env)  # force_reset: the segment starts from a reset of the new env
+        target = min((segment + 1) * settings.segment_timesteps, settings.timesteps)
+        stats = _SegmentStats()
+        t0 = time.perf_counter()
+        model.learn(max(target - model.num_timesteps, 1), reset_num_timesteps=False, callback=stats,
+                    progress_bar=False)
+        env.close()
+        train_wall = time.perf_counter() - t0
+        row: dict[str, Any] = {"segment": segment, "timesteps": int(model.num_timesteps),
+                               "wall_s": round(float(state["wall_s"]) + train_wall, 1),
+                               "learning_rate": float(model.policy.optimizer.param_groups[0]["lr"]),
+                               "explained_variance": float(np.mean(stats.ev)) if stats.ev else float("nan")}
+        episodes = sum(stats.outcomes.values())
+        row["train_episodes"] = episodes
+        for o in OUTCOMES:
+            row[f"train_{o}"] = stats.outcomes[o] / episodes if episodes else float("nan")
+        row.update(_evaluate(model, recipe, tasks))
+        state["rows"] = list(state["rows"]) + [row]
+        state["segment"] = segment + 1
+        state["wall_s"] = row["wall_s"]
+        state["rng"] = _rng_state()
+        model.resume_state = state
+        save_model_atomic(model, run_dir / CHECKPOINT_FILE)
+        _write_curve(run_dir, state["rows"])
+        log(f"segment {segment}: {model.num_timesteps:,} transitions, {train_wall:.0f} s "
+            f"({(row['timesteps'] - (state['rows'][-2]['timesteps'] if len(state['rows']) > 1 else 0)) / train_wall:,.0f}"
+            f" /s), held-out goal aggr/normal/caut "
+            f"{row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / {row['cautious_goal']:.1%}, "
+            f"normal collision {row['normal_collision']:.1%} off-road {row['normal_offroad']:.1%} "
+            f"timeout {row['normal_timeout']:.1%}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
+        if (run_dir / STOP_FILE).exists():
+            log(f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}")
+            break
+        if stop_after_s is not None and time.perf_counter() - start >= stop_after_s:
+            log(f"stopping after {time.perf_counter() - start:.0f} s of this piece (--stop-after)")
+            break
+    return model

@@ -1,0 +1,114 @@
+"""The resumable self-play anchor run (cpalgo.anchor.selfplay): pieces equal one run, a
+killed piece loses only its unsaved segment, the curve and its plot, and clear errors."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+
+from cpalgo.anchor import selfplay
+from cpalgo.anchor.selfplay import AnchorRunSettings, plot_curve, read_curve, train_anchor_run
+
+RECIPE = """cpsim/SelfPlay-v0:
+  policy: 'BehaviorLstmPolicy'
+  n_envs: 8
+  n_timesteps: 300
+  n_steps: 8
+  batch_size: 32
+  n_epochs: 1
+  learning_rate: 'cosine(1e-3)'
+  clip_reward: 1.0
+  policy_kwargs: "dict(lstm_hidden_size=16, features_extractor_kwargs=dict(ego_width=8, condition_width=8, partner_width=8, road_width=8, features_dim=16))"
+  env_kwargs:
+    max_agents: 4
+    dynamics: classic
+"""
+
+
+@pytest.fixture()
+def recipe(tmp_path: Path) -> str:
+    path = tmp_path / "tiny.yml"
+    path.write_text(RECIPE)
+    return str(path)
+
+
+def _settings(recipe: str) -> AnchorRunSettings:
+    return AnchorRunSettings(recipe=recipe, seed=3, timesteps=300, segment_timesteps=100, pool_size=2, eval_tasks=2)
+
+
+def _weights(run: Path) -> dict[str, th.Tensor]:
+    with zipfile.ZipFile(run / "checkpoint.zip") as archive:
+        return th.load(io.BytesIO(archive.read("policy.pth")), weights_only=False)
+
+
+def _optimizer(run: Path) -> dict:
+    with zipfile.ZipFile(run / "checkpoint.zip") as archive:
+        return th.load(io.BytesIO(archive.read("policy.optimizer.pth")), weights_only=False)
+
+
+def _same(a: dict[str, th.Tensor], b: dict[str, th.Tensor]) -> bool:
+    return a.keys() == b.keys() and all(th.equal(a[k], b[k]) for k in a)
+
+
+def _quiet(_msg: str) -> None:
+    pass
+
+
+def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, recipe: str, monkeypatch):
+    whole = train_anchor_run(tmp_path / "whole", _settings(recipe), log=_quiet)
+    rows = read_curve(tmp_path / "whole")
+    assert [int(r["segment"]) for r in rows] == list(range(len(rows))) and len(rows) >= 3
+    assert rows[-1]["timesteps"] >= 300 > rows[-2]["timesteps"]
+    assert whole.num_timesteps == rows[-1]["timesteps"]
+
+    # piece 1 stops after its first segment ...
+    train_anchor_run(tmp_path / "pieces", _settings(recipe), stop_after_s=0.0, log=_quiet)
+    assert len(read_curve(tmp_path / "pieces")) == 1
+    # ... piece 2 is killed after learning its first segment, before the checkpoint
+    calls = {"n": 0}
+    real_evaluate = selfplay._evaluate
+
+    def killed(*args, **kwargs):
+        calls["n"] += 1
+        raise KeyboardInterrupt("killed")
+
+    monkeypatch.setattr(selfplay, "_evaluate", killed)
+    kept = _weights(tmp_path / "pieces")
+    with pytest.raises(KeyboardInterrupt):
+        train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet)
+    assert calls["n"] == 1 and _same(_weights(tmp_path / "pieces"), kept)  # the last checkpoint survives
+    monkeypatch.setattr(selfplay, "_evaluate", real_evaluate)
+    # ... piece 3 resumes from the last checkpoint and finishes
+    resumed = train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet)
+    assert resumed.num_timesteps == whole.num_timesteps
+    assert _same(_weights(tmp_path / "pieces"), _weights(tmp_path / "whole"))
+    opt_a, opt_b = _optimizer(tmp_path / "pieces"), _optimizer(tmp_path / "whole")
+    assert all(th.equal(opt_a["state"][k]["exp_avg"], opt_b["state"][k]["exp_avg"]) for k in opt_a["state"])
+    piece_rows = read_curve(tmp_path / "pieces")
+    # the same curve, wall time apart (nan where a segment ended no training episode)
+    np.testing.assert_equal([{k: v for k, v in r.items() if k != "wall_s"} for r in piece_rows],
+                            [{k: v for k, v in r.items() if k != "wall_s"} for r in rows])
+    # the learning rate followed one cosine over the whole budget
+    assert rows[0]["learning_rate"] > rows[1]["learning_rate"] > rows[2]["learning_rate"]
+    png = plot_curve(tmp_path / "whole")
+    assert png.is_file() and png.stat().st_size > 1000
+
+
+def test_run_folder_errors_name_the_folder(tmp_path: Path, recipe: str):
+    with pytest.raises(ValueError, match="holds no run.json"):
+        train_anchor_run(tmp_path / "nothing", resume=True, log=_quiet)
+    with pytest.raises(ValueError, match="segment_timesteps"):
+        AnchorRunSettings(recipe=recipe, segment_timesteps=0)
+    with pytest.raises(ValueError, match="unknown settings"):
+        AnchorRunSettings.from_dict({"recipe": recipe, "epochs": 3})
+    with pytest.raises(ValueError, match="has no curve.csv"):
+        read_curve(tmp_path)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "run.json").write_text("{}")
+    with pytest.raises(ValueError, match="already holds a run"):
+        train_anchor_run(tmp_path / "run", _settings(recipe), log=_quiet)
