@@ -33,7 +33,7 @@ import torch as th
 
 from cpalgo.counterplay.bench import _attach_memory_logger
 
-__all__ = ["run_learn_benchmark", "main", "LEARNERS"]
+__all__ = ["run_learn_benchmark", "run_recipe_benchmark", "flops_per_transition", "main", "LEARNERS"]
 
 LEARNERS = ("stock", "fused", "ppo", "counterplay")
 
@@ -190,6 +190,107 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
     return out
 
 
+def _lstm_flops(policy: Any) -> float:
+    """Forward FLOPs of one step of every LSTM of ``policy`` (FlopCounterMode does not see
+    ``aten.lstm``): 2 x 4 H (I + H) multiply-adds per layer."""
+    total = 0.0
+    for lstm in (getattr(policy, "lstm_actor", None), getattr(policy, "lstm_critic", None)):
+        if lstm is not None:
+            inp, hid = lstm.input_size, lstm.hidden_size
+            for layer in range(lstm.num_layers):
+                total += 2.0 * 4 * hid * ((inp if layer == 0 else hid) + hid)
+    return total
+
+
+def flops_per_transition(policy: Any, obs_dim: int, n: int = 256) -> dict[str, float]:
+    """FLOPs of one live transition: ``inference`` (one forward of actor and critic, as in the
+    rollout) and ``train`` (forward and backward of ``evaluate_actions``), counted with
+    ``torch.utils.flop_counter`` on ``n`` random observations, plus the LSTMs analytically
+    (backward = 2 x forward)."""
+    from sb3_contrib.common.recurrent.type_aliases import RNNStates
+    from torch.utils.flop_counter import FlopCounterMode
+
+    device = policy.device
+    obs = th.rand((n, obs_dim), device=device) * 2 - 1
+    lstm = policy.lstm_actor
+    zeros = th.zeros((lstm.num_layers, n, lstm.hidden_size), device=device)
+    states = RNNStates((zeros, zeros), (zeros, zeros))
+    starts = th.zeros(n, device=device)
+    with th.no_grad(), FlopCounterMode(display=False) as counter:
+        policy(obs, states, starts)
+    inference = counter.get_total_flops() / n + _lstm_flops(policy)
+    with FlopCounterMode(display=False) as counter:
+        values, log_prob, entropy = policy.evaluate_actions(obs, th.zeros(n, device=device), states, starts)
+        (values.sum() + log_prob.sum() + entropy.sum()).backward()
+    policy.zero_grad(set_to_none=True)
+    train = counter.get_total_flops() / n + 3 * _lstm_flops(policy)
+    return {"inference": float(inference), "train": float(train)}
+
+
+def run_recipe_benchmark(recipes: tuple[str, ...], generations: int = 3, seed: int = 0,
+                         threads: int | None = None, device: str = "cpu") -> dict[str, Any]:
+    """Time whole anchor recipes (zoo YAML) end to end, from scratch, as ``counterplay
+    train-anchor`` runs them: each recipe's env (its worlds, slots, dynamics), network and
+    PPO settings on the fast learner (``CounterPlay(counterfactual=False)``).
+
+    One warm-up generation each, then ``generations`` timed generations alternating between
+    the recipes (load from other processes hits all alike); medians. Per recipe: live
+    transitions per generation, rollout and train seconds, live transitions/s end to end,
+    FLOPs per live transition (inference once, training ``n_epochs`` times) and the FLOP
+    rate of ``train``.
+    """
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from cpalgo.counterplay.algorithm import CounterPlay
+    from cpalgo.recipes import load_recipe
+    from cpsim import SelfPlayVecEnv
+
+    if threads is not None:
+        th.set_num_threads(int(threads))
+    models: dict[str, Any] = {}
+    for path in recipes:
+        recipe = load_recipe(path)
+        kwargs = {k: v for k, v in recipe.env_kwargs.items() if k != "seed"}
+        env = VecMonitor(SelfPlayVecEnv(num_worlds=recipe.num_worlds, seed=seed, device=device, **kwargs))
+        algo = {k: v for k, v in recipe.algo_kwargs.items() if k != "schedule_timesteps"}
+        models[path] = CounterPlay(recipe.policy, env, counterfactual=False, seed=seed, device=device, **algo)
+    for model in models.values():
+        model.learn(1)  # warm-up: module load, buffers, first allocations
+    phases = {name: _phase_timer(m) for name, m in models.items()}
+    walls: dict[str, list[float]] = {name: [] for name in models}
+    live: dict[str, list[int]] = {name: [] for name in models}
+    for _ in range(generations):
+        for name, model in models.items():
+            before = model.num_timesteps
+            start = time.perf_counter()
+            model.learn(1, reset_num_timesteps=False)
+            walls[name].append(time.perf_counter() - start)
+            live[name].append(model.num_timesteps - before)
+    out: dict[str, Any] = {"generations": generations, "torch_threads": th.get_num_threads(), "device": device,
+                           "recipes": {}}
+    for name, model in models.items():
+        wall = float(np.median(walls[name]))
+        transitions = float(np.median(live[name]))
+        train_s = float(np.median(phases[name]["train"]))
+        flops = flops_per_transition(model.policy, int(model.observation_space.shape[0]))
+        epochs = int(model.n_epochs)
+        out["recipes"][name] = {
+            "policy": type(model.policy).__name__,
+            "parameters": int(sum(p.numel() for p in model.policy.parameters())),
+            "slots": int(model.n_envs), "n_steps": int(model.n_steps), "batch_size": int(model.batch_size),
+            "n_epochs": epochs, "live_transitions_per_generation": transitions,
+            "s_per_generation": wall, "rollout_s": float(np.median(phases[name]["collect"])), "train_s": train_s,
+            "live_transitions_per_s": transitions / wall,
+            "flops_per_transition": {**flops, "total": flops["inference"] + epochs * flops["train"]},
+            "train_gflops_per_s": epochs * flops["train"] * transitions / train_s / 1e9,
+        }
+    names = list(models)
+    if len(names) > 1:
+        base = out["recipes"][names[0]]["live_transitions_per_s"]
+        out["speedup_vs_first"] = {n: out["recipes"][n]["live_transitions_per_s"] / base for n in names}
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m cpalgo.bench", description=__doc__.splitlines()[0])
     parser.add_argument("--worlds", type=int, default=16)
@@ -204,6 +305,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="also write the JSON summary here")
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:n] (simulator, learners and search)")
+    parser.add_argument("--recipes", default=None, metavar="YAML,YAML",
+                        help="instead: time these anchor recipes end to end from scratch, each with its own env, "
+                             "network and PPO settings (e.g. zoo/anchor.yml,zoo/anchor_selfplay.yml)")
     parser.add_argument("--same-learning", type=int, default=0, metavar="GENERATIONS",
                         help="instead: post-train the anchor with the stock and the fast learner for this many "
                              "generations each and compare held-out outcome rates")
@@ -212,6 +316,14 @@ def main(argv: list[str] | None = None) -> None:
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")
     learners = tuple(x.strip() for x in args.learners.split(",") if x.strip())
+    if args.recipes:
+        try:
+            result = run_recipe_benchmark(tuple(x.strip() for x in args.recipes.split(",") if x.strip()),
+                                          args.generations, args.seed, args.threads, args.device)
+        except ValueError as exc:
+            parser.error(str(exc))
+        _emit(json.dumps(result, indent=2), args.out)
+        return
     if args.same_learning > 0:
         result = compare_learning(args.same_learning, args.worlds, args.agents, args.n_steps, args.batch_size,
                                   args.epochs, seed=args.seed, anchor=args.anchor)
