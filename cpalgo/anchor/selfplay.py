@@ -53,6 +53,7 @@ CURVE_COLUMNS: tuple[str, ...] = (
     ("segment", "timesteps", "wall_s", "learning_rate", "explained_variance", "train_episodes")
     + tuple(f"train_{o}" for o in OUTCOMES)
     + tuple(f"{s}_{o}" for s in STYLES for o in OUTCOMES)
+    + ("value_failures", "value_falls", "value_change")
 )
 #: seed of the held-out procedural tasks (``cpsim.scenario.eval_pool``), shared with the CLI
 HELD_OUT_SEED = 0
@@ -166,6 +167,7 @@ def _held_out(settings: AnchorRunSettings) -> list[Any]:
 
 
 def _evaluate(model: Any, recipe: Any, tasks: Sequence[Any]) -> dict[str, float]:
+    from cpalgo.anchor.critic import value_before_failures
     from cpalgo.anchor.outcomes import selfplay_outcomes
 
     config = {k: recipe.env_kwargs[k] for k in ("dynamics",) if k in recipe.env_kwargs}
@@ -175,6 +177,10 @@ def _evaluate(model: Any, recipe: Any, tasks: Sequence[Any]) -> dict[str, float]
                                   config=config or None)
         for o in OUTCOMES:
             row[f"{style}_{o}"] = float(getattr(rates, o))
+    # does the critic know the task: its value over the 2 s before each failure (normal style)
+    trend = value_before_failures(model, tasks, condition="normal",
+                                  max_agents=int(recipe.env_kwargs.get("max_agents", 8)), config=config or None)
+    row.update(value_failures=trend.failures, value_falls=trend.falls, value_change=trend.mean_change)
     return row
 
 
@@ -223,7 +229,13 @@ def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None)
     axes[1].set(title="normal style: failures", xlabel="transitions (M)", ylabel="%")
     axes[1].legend(fontsize=8)
     axes[2].plot(x, [r.get("explained_variance", np.nan) for r in rows], marker="o", ms=3)
-    axes[2].set(title="critic explained variance", xlabel="transitions (M)")
+    axes[2].set(title="critic", xlabel="transitions (M)")
+    if any("value_falls" in r for r in rows):
+        axes[2].plot(x, [r.get("value_falls", np.nan) for r in rows], marker="s", ms=3,
+                     label="share of failures whose value falls over the last 2 s")
+    axes[2].plot([], [])
+    axes[2].legend(["explained variance"] + (["value falls before failure"] if any("value_falls" in r for r in rows)
+                                             else []), fontsize=8)
     top = axes[0].secondary_xaxis("top", functions=(
         lambda v: np.interp(v, x, [r["wall_s"] / 3600 for r in rows]),
         lambda h: np.interp(h, [r["wall_s"] / 3600 for r in rows], x)))
