@@ -360,9 +360,9 @@ def compare_learning(generations: int = 18, worlds: int = 32, agents: int = 8, n
     collision / off-road / timeout rates under the normal condition (argmax actions,
     evaluation goal criterion), the anchor's included, and each learner's wall time.
     """
+    from cpalgo.anchor.outcomes import selfplay_outcomes
     from cpalgo.cli import _held_out
     from cpalgo.recipes import shipped_path
-    from cpalgo.selfplay_eval import selfplay_outcomes
     from cpsim import SelfPlayVecEnv
 
     path = anchor or str(shipped_path("anchor.zip"))

@@ -670,21 +670,21 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--imitate-style-pairs", type=_non_negative_int, default=0, metavar="K",
                     help="label every DAgger episode K more times with every agent's style swapped for a random "
                          "panel profile's (the teacher's actions under it at the same states), so the student "
-                         "learns how the style changes the action (cpalgo.pretrain.ImitationConfig.style_pairs)")
+                         "learns how the style changes the action (cpalgo.anchor.imitation.ImitationConfig.style_pairs)")
     ta.add_argument("--imitate-only", action="store_true", help="stop after the imitation rounds (no PPO)")
     ta.add_argument("--teacher-coef", type=_non_negative_float, default=0.0, metavar="C",
                     help="PPO with the --teacher's actions as an auxiliary imitation term of weight C "
-                         "(cpalgo.teacher_ppo.TeacherPPO; 0: plain PPO)")
+                         "(cpalgo.anchor.teacher_ppo.TeacherPPO; 0: plain PPO)")
     ta.add_argument("--teacher-coef-final", type=_non_negative_float, default=None, metavar="C",
                     help="the imitation weight at the end of PPO (linear from --teacher-coef; default: constant)")
     ta.add_argument("--teacher-style-pairs", type=_non_negative_int, default=0, metavar="K",
                     help="with --teacher-coef: label every live decision K more times under a swapped panel style "
-                         "and imitate those labels too (cpalgo.teacher_ppo.TeacherPPO.style_pairs)")
+                         "and imitate those labels too (cpalgo.anchor.teacher_ppo.TeacherPPO.style_pairs)")
     ta.add_argument("--style-pair-coef", type=_non_negative_float, default=None, metavar="C",
                     help="weight of the swapped-style imitation term (default: the current --teacher-coef)")
     ta.add_argument("--style-pair-focus", action="store_true",
                     help="average the swapped-style term only over decisions whose swapped label differs from the "
-                         "agent's own (cpalgo.teacher_ppo.TeacherPPO.style_pair_focus)")
+                         "agent's own (cpalgo.anchor.teacher_ppo.TeacherPPO.style_pair_focus)")
     ta.add_argument("--drop-optimizer-state", action="store_true",
                     help="save the final checkpoint with a fresh optimiser (weights only: about half the size)")
     ta.add_argument("--eval-tasks", type=_positive_int, default=256, metavar="N",
@@ -750,7 +750,7 @@ def build_parser() -> argparse.ArgumentParser:
     po.set_defaults(func=cmd_pool)
 
     add_commands(add)  # experiment, methods (cpalgo.experiments.command)
-    add_compress_command(add)  # compress-anchor (cpalgo.compress)
+    add_compress_command(add)  # compress-anchor (cpalgo.anchor.compress)
     return parser
 
 

@@ -10,7 +10,7 @@ map of ``features_dim`` outputs in front of both, so the projection becomes
 A trained flat network converts without retraining: :func:`factorize_input_layers` solves the
 reduced-rank regression of the stacked input weights on observations the policy actually sees
 (the best rank-``features_dim`` map for that data), so the converted policy's input
-projections are close to the original's; ``counterplay compress-anchor`` (:mod:`cpalgo.compress`)
+projections are close to the original's; ``counterplay compress-anchor`` (:mod:`cpalgo.anchor.compress`)
 wraps it for checkpoints and distills the rest of the difference away.
 
 Use it through ``policy_kwargs`` with any SB3 / sb3-contrib policy::

@@ -7,7 +7,7 @@ follows the agent's logged path (pure pursuit on the path, so the agent stays on
 road and reaches its goal) at the logged schedule (the speed the log has at this step,
 plus a correction towards the logged arc position, so yields and stops in the log are
 kept). The labels are exact actions of the simulator, so they can be imitated by a
-policy (``cpalgo.pretrain``) from the states the policy itself visits (DAgger).
+policy (``cpalgo.anchor.imitation``) from the states the policy itself visits (DAgger).
 
 Everything is batched over worlds x agents in torch; there is no Python loop over agents.
 """
