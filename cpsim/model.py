@@ -46,6 +46,7 @@ import numpy as np
 import warp as wp
 
 from cpsim.config import SimConfig
+from cpsim.model_arrays import ModelArrays
 from cpsim.scenario.datatypes import RoadType, Scenario, ScenarioError, validate_scenarios
 
 #: Largest number of grid cells per scenario; larger maps get proportionally larger cells.
@@ -55,46 +56,6 @@ MAX_CELLS_PER_SCENARIO = 40_000
 GRID_REGION_MARGIN = 50.0
 #: Agents moving less than this along their whole log are parked for IDM (desired speed 0).
 IDM_PARKED_PATH_LENGTH = 1.0
-
-
-@wp.struct
-class ModelArrays:
-    """Device view of the static model (see module docstring). Shapes: S segments,
-    C cells (all scenarios), G scenarios, L log rows (agents of the pool), T = 91."""
-
-    seg_a: wp.array(dtype=wp.vec2f)        # (S,) start point, m
-    seg_b: wp.array(dtype=wp.vec2f)        # (S,) end point, m
-    seg_mid: wp.array(dtype=wp.vec2f)      # (S,) midpoint, m
-    seg_dir: wp.array(dtype=wp.vec2f)      # (S,) unit direction a->b
-    seg_len: wp.array(dtype=wp.float32)    # (S,) length, m
-    seg_type: wp.array(dtype=wp.int32)     # (S,) RoadType
-    seg_poly: wp.array(dtype=wp.int32)     # (S,) global polyline id (lane identity)
-    grid_origin: wp.array(dtype=wp.vec2f)  # (G,) lower-left corner of the grid, m
-    grid_dims: wp.array(dtype=wp.vec2i)    # (G,) cells along x and y
-    grid_cell: wp.array(dtype=wp.float32)  # (G,) cell side, m
-    grid_first: wp.array(dtype=wp.int32)   # (G,) global index of the scenario's first cell
-    obs_start: wp.array(dtype=wp.int32)    # (C+1,) CSR offsets into obs_items
-    obs_items: wp.array(dtype=wp.int32)
-    lane_start: wp.array(dtype=wp.int32)   # (C+1,)
-    lane_items: wp.array(dtype=wp.int32)
-    edge_start: wp.array(dtype=wp.int32)   # (C+1,)
-    edge_items: wp.array(dtype=wp.int32)
-    agent_first: wp.array(dtype=wp.int32)  # (G+1,) log rows of scenario g: agent_first[g] ...
-    agent_scenario: wp.array(dtype=wp.int32)  # (L,) scenario of each log row
-    slot_count: wp.array(dtype=wp.int32)   # (G,) agents given a slot at reset (slots 0.. hold them)
-    log_xy: wp.array2d(dtype=wp.vec2f)     # (L, T) m
-    log_heading: wp.array2d(dtype=wp.float32)  # (L, T) rad
-    log_vel: wp.array2d(dtype=wp.vec2f)    # (L, T) m/s
-    log_valid: wp.array2d(dtype=wp.bool)   # (L, T)
-    log_offroad: wp.array2d(dtype=wp.bool)  # (L, T) off-road test of the logged move t-1 -> t (vehicles)
-    size: wp.array(dtype=wp.vec2f)         # (L,) logged (length, width), m
-    agent_type: wp.array(dtype=wp.int32)   # (L,) AgentType
-    goal: wp.array(dtype=wp.vec2f)         # (L,) m
-    idm_v0: wp.array(dtype=wp.float32)     # (L,) IDM desired speed, m/s
-    path_xy: wp.array2d(dtype=wp.vec2f)    # (L, T) valid logged points, compressed to the front
-    path_s: wp.array2d(dtype=wp.float32)   # (L, T) cumulative arc length, m
-    path_h: wp.array2d(dtype=wp.float32)   # (L, T) logged heading at the path point, rad
-    path_n: wp.array(dtype=wp.int32)       # (L,) number of path points
 
 
 # ----------------------------------------------------------------------------- geometry helpers

@@ -24,7 +24,7 @@ import warp as wp
 
 from cpsim.kernels.common import IDM, KERNEL_MODULE, Params, launch, launcher
 from cpsim.kernels.geometry import cross2, wrap_angle
-from cpsim.model import ModelArrays
+from cpsim.model_arrays import ModelArrays
 from cpsim.state import State, StepScratch
 
 #: Horizon (s) of the straight-line prediction used for yielding to crossing agents.

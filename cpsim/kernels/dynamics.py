@@ -63,7 +63,7 @@ from cpsim.config import CLASSIC_ACCEL, CLASSIC_STEER, JERK_LAT, JERK_LONG
 from cpsim.kernels.common import IDM, KERNEL_MODULE, LAST_LOG_STEP, POLICY, REPLAY, STATIC, Params, launch, launcher
 from cpsim.kernels.controllers import path_pose
 from cpsim.kernels.geometry import wrap_angle
-from cpsim.model import ModelArrays
+from cpsim.model_arrays import ModelArrays
 from cpsim.state import State, StepScratch
 
 WHEELBASE_FRACTION = 0.6

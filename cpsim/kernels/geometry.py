@@ -48,7 +48,7 @@ import math
 import numpy as np
 import warp as wp
 
-from cpsim.model import ModelArrays
+from cpsim.model_arrays import ModelArrays
 from cpsim.scoring import NO_LANE_DISTANCE
 
 PI = wp.constant(math.pi)

@@ -68,7 +68,7 @@ from cpsim.kernels.geometry import (
 )
 from cpsim.kernels.observation import tracked_role
 from cpsim.kernels.reward import comfort_violations, write_reward
-from cpsim.model import ModelArrays
+from cpsim.model_arrays import ModelArrays
 from cpsim.state import State, StepScratch
 
 

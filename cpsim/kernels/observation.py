@@ -20,7 +20,7 @@ import warp as wp
 from cpsim.conditions import TRAIN_HIGH, TRAIN_LOW
 from cpsim.kernels.common import IDM, KERNEL_MODULE, POLICY, STATIC, VEHICLE, Params, launch, launcher
 from cpsim.kernels.geometry import grid_cell, to_local
-from cpsim.model import ModelArrays
+from cpsim.model_arrays import ModelArrays
 from cpsim.state import State, StepScratch
 
 _COND_LOW = wp.constant(wp.types.vector(10, wp.float32)(*TRAIN_LOW.tolist()))

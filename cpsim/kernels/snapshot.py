@@ -24,7 +24,7 @@ from cpsim.kernels.common import KERNEL_MODULE, NO_CONTROLLER, POLICY, RUNNING, 
 from cpsim.kernels.dynamics import signed_speed
 from cpsim.kernels.geometry import lane_query
 from cpsim.kernels.observation import tracked_role
-from cpsim.model import ModelArrays
+from cpsim.model_arrays import ModelArrays
 from cpsim.state import State
 
 
