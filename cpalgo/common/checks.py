@@ -1,6 +1,7 @@
 """What the commands share to check their input before any work: :class:`UsageError`
 (one line, exit status 2), argument types for whole numbers, output paths that can be
-written, ``--add-womd`` folders that load, and torch's thread count.
+written, ``--add-womd`` folders that load, torch's thread count, and :func:`brief` error
+messages.
 
 ``cpalgo.cli`` and the commands that live beside their library code (``compress-anchor``
 in :mod:`cpalgo.anchor.compress`) import them from here, so no library module imports the
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["UsageError", "whole_number", "positive_int", "non_negative_int", "check_out_path",
-           "load_womd_option", "set_threads"]
+           "load_womd_option", "set_threads", "brief"]
 
 
 class UsageError(Exception):
@@ -84,3 +85,9 @@ def set_threads(threads: int | None) -> None:
 
     if threads:
         torch.set_num_threads(threads)
+
+
+def brief(exc: BaseException, lines: int = 2) -> str:
+    """The first non-empty lines of an exception's message (torch's state-dict mismatch
+    lists every tensor)."""
+    return " ".join([line.strip() for line in str(exc).splitlines() if line.strip()][:lines])
