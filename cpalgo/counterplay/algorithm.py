@@ -32,13 +32,20 @@ local variable names are kept for callbacks); the update is the one PPO update o
 :mod:`cpalgo.common.ppo_update`. With ``counterfactual=False``, ``mask_inactive=False`` and
 sb3-contrib's policy class the computation is exactly the parent's: parameters after
 ``learn`` are bit-identical to ``RecurrentPPO`` (tested).
+
+This module keeps the constructor, model setup / save / load, ``learn``, the rollout loop
+and the update; the rest of the class comes from its bases, one module each:
+:mod:`~cpalgo.counterplay.settings` (argument checks, settings of older checkpoints),
+:mod:`~cpalgo.counterplay.rollout_hooks` (the rollout loop's hooks, live slots),
+:mod:`~cpalgo.counterplay.driver_glue` (the search driver: building it, its statistics,
+root replays, the generation log) and :mod:`~cpalgo.counterplay.distill` (the distillation
+batch of a generation).
 """
 
 from __future__ import annotations
 
-import os
 from copy import deepcopy
-from typing import TYPE_CHECKING, Any, ClassVar, Sequence
+from typing import Any, ClassVar, Sequence
 
 import numpy as np
 import torch as th
@@ -46,26 +53,30 @@ from gymnasium import spaces
 from sb3_contrib import RecurrentPPO
 from sb3_contrib.common.recurrent.buffers import RecurrentDictRolloutBuffer, RecurrentRolloutBuffer
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
-from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import obs_as_tensor
-from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
+from stable_baselines3.common.vec_env import VecEnv
 
 from cpalgo.common.buffers import MaskedRecurrentDictRolloutBuffer, MaskedRecurrentRolloutBuffer
-from cpalgo.common.policy_utils import put_states, take_states
 from cpalgo.common.ppo_update import ScheduledTerms, begin_update, run_update
 from cpalgo.common.progress import LearnProgressBar
 from cpalgo.counterplay.budget import Budget
-from cpalgo.counterplay.distill import DISTILL_MODES, Teacher, TeacherBatch, collate_teachers, distill_loss
-from cpalgo.counterplay.driver import FAILURE_OUTCOMES, SearchDriver, SearchSettings, SearchStats
-from cpalgo.counterplay.records import check_keep_searches, keep_wave
+from cpalgo.counterplay.distill import DistillationMixin, Teacher, distill_loss
+from cpalgo.counterplay.driver import FAILURE_OUTCOMES, SearchDriver
+from cpalgo.counterplay.driver_glue import SearchDriverMixin
+from cpalgo.counterplay.records import check_keep_searches
+from cpalgo.counterplay.rollout_hooks import RolloutHooksMixin
+from cpalgo.counterplay.settings import (
+    SettingsMixin,
+    check_sequences,
+    check_switches,
+    checked_clip_reward,
+    checked_schedule_timesteps,
+)
 from cpalgo.policies import POLICY_ALIASES, BehaviorLstmPolicy
-from cpsim.conditions import PANEL, STYLE_MASK, resolve_condition
-
-if TYPE_CHECKING:
-    from cpalgo.counterplay.branches import BranchResult
+from cpsim.conditions import PANEL
 
 __all__ = ["CounterPlay", "FAILURE_OUTCOMES", "ANCHOR_NETWORK"]
 
@@ -82,7 +93,7 @@ def _default_network(policy: Any) -> dict[str, Any]:
     return deepcopy(ANCHOR_NETWORK)
 
 
-class CounterPlay(RecurrentPPO):
+class CounterPlay(SettingsMixin, RolloutHooksMixin, SearchDriverMixin, DistillationMixin, RecurrentPPO):
     """RecurrentPPO with counterfactual retries of failed tasks distilled into the policy.
 
     Every argument of :class:`sb3_contrib.RecurrentPPO` is accepted. Defaults that differ,
@@ -182,13 +193,9 @@ class CounterPlay(RecurrentPPO):
             policy_kwargs=_default_network(policy) if policy_kwargs is None else policy_kwargs,
             _init_setup_model=False, **ppo_kwargs,
         )
-        for name, flag in (("counterfactual", counterfactual), ("shared_randomness", shared_randomness),
-                           ("style_change", style_change), ("verify", verify), ("mask_inactive", mask_inactive)):
-            if not isinstance(flag, (bool, np.bool_)):  # bool("no") is True: take no chances with a switch
-                raise ValueError(f"{name}: expected True or False, got {flag!r}")
-        for name, seq in (("window", window), ("panel", panel)):
-            if not isinstance(seq, (str, Sequence, np.ndarray)):
-                raise ValueError(f"{name}: expected a sequence, got {seq!r}")
+        check_switches(counterfactual=counterfactual, shared_randomness=shared_randomness, style_change=style_change,
+                       verify=verify, mask_inactive=mask_inactive)
+        check_sequences(window=window, panel=panel)
         self.counterfactual = bool(counterfactual)
         self.root_interval = root_interval
         self.window = tuple(window) if not isinstance(window, str) else window
@@ -210,15 +217,8 @@ class CounterPlay(RecurrentPPO):
         self.mask_inactive = bool(mask_inactive)
         self.max_searches = max_searches
         self.keep_searches = check_keep_searches(keep_searches)
-        if clip_reward is not None and (isinstance(clip_reward, bool) or not isinstance(clip_reward, (int, float))
-                                        or not np.isfinite(clip_reward) or clip_reward <= 0):
-            raise ValueError(f"clip_reward: expected None or a number > 0, got {clip_reward!r}")
-        self.clip_reward = None if clip_reward is None else float(clip_reward)
-        if schedule_timesteps is not None and (isinstance(schedule_timesteps, bool)
-                                               or not isinstance(schedule_timesteps, (int, np.integer))
-                                               or schedule_timesteps < 1):
-            raise ValueError(f"schedule_timesteps: expected None or a whole number >= 1, got {schedule_timesteps!r}")
-        self.schedule_timesteps = None if schedule_timesteps is None else int(schedule_timesteps)
+        self.clip_reward = checked_clip_reward(clip_reward)
+        self.schedule_timesteps = checked_schedule_timesteps(schedule_timesteps)
         self._validate_settings()
         self.budget = Budget(branch_cap=float(branch_cap), post_budget=post_budget)
         #: running totals of every generation's search counts (SearchStats.as_dict keys)
@@ -228,91 +228,11 @@ class CounterPlay(RecurrentPPO):
         if _init_setup_model:
             self._setup_model()
 
-    # ================================================================== settings
-    def _validate_settings(self) -> None:
-        """Check every CounterPlay argument; ``ValueError`` names the argument."""
-        # a saved model comes back from JSON with lists where tuples were
-        if isinstance(self.panel, list):
-            self.panel = tuple(self.panel)
-        if isinstance(self.window, list):
-            self.window = tuple(self.window)
-        if isinstance(self.deploy_condition, (list, tuple)):
-            self.deploy_condition = tuple(float(x) for x in self.deploy_condition)
-        for name, integer, optional in (("rho", False, False), ("root_interval", True, False),
-                                        ("fixed_depth", True, False), ("distill_coef", False, False),
-                                        ("distill_minibatches", True, False), ("branch_cap", False, False),
-                                        ("post_budget", False, True), ("max_searches", True, True)):
-            value = getattr(self, name)
-            if value is None and optional:
-                continue
-            kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
-            if isinstance(value, bool) or not isinstance(value, kinds):
-                raise ValueError(f"{name}: expected {'a whole number' if integer else 'a number'}"
-                                 f"{' or None' if optional else ''}, got {value!r}")
-        for name in ("n_steps", "n_epochs"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"{name}: must be a whole number >= 1, got {value!r}")
-        if self.batch_size is not None and (isinstance(self.batch_size, bool)
-                                            or not isinstance(self.batch_size, (int, np.integer))
-                                            or self.batch_size < 1):
-            raise ValueError(f"batch_size: must be a whole number >= 1 or None, got {self.batch_size!r}")
-        self._search_settings()  # validates the search arguments
-        self._deploy_raw = resolve_condition(self.deploy_condition, "deploy_condition")
-        if self.distill not in DISTILL_MODES:
-            raise ValueError(f"distill: expected one of {DISTILL_MODES}, got {self.distill!r}")
-        if not float(self.distill_coef) >= 0.0:
-            raise ValueError(f"distill_coef: must be >= 0, got {self.distill_coef!r}")
-        if int(self.distill_minibatches) < 1:
-            raise ValueError(f"distill_minibatches: must be >= 1, got {self.distill_minibatches!r}")
-        if not float(self.branch_cap) > 0.0:
-            raise ValueError(f"branch_cap: must be > 0, got {self.branch_cap!r}")
-        if self.post_budget is not None and not float(self.post_budget) > 0:
-            raise ValueError(f"post_budget: must be > 0 or None, got {self.post_budget!r}")
-
-    def _search_settings(self) -> SearchSettings:
-        window = self.window if isinstance(self.window, str) or len(self.window) != 2 else \
-            (int(self.window[0]), int(self.window[1]))
-        return SearchSettings(
-            root_interval=int(self.root_interval), window=window,
-            rho=float(self.rho), backtrack=self.backtrack, fixed_depth=int(self.fixed_depth), panel=tuple(self.panel),
-            shared_randomness=self.shared_randomness, style_change=self.style_change, selection=self.selection,
-            verify=self.verify, max_searches=None if self.max_searches is None else int(self.max_searches),
-            root_lifetime=self.root_lifetime, seed=int(self.seed or 0),
-        )
-
-    def _check_branching_env(self, env: VecEnv | None) -> None:
-        """A counterfactual run needs a self-play env the search can branch from."""
-        if not self.counterfactual or env is None:
-            return
-        missing = [name for name in ("sim", "obs_layout", "num_worlds", "max_agents") if not hasattr(env, name)]
-        if missing:
-            raise ValueError(
-                f"env: counterfactual=True needs a branching-capable self-play env (e.g. cpsim.SelfPlayVecEnv) "
-                f"exposing .sim, .obs_layout, .num_worlds, .max_agents; missing {missing} on {type(env).__name__}"
-            )
-        if int(env.num_worlds) * int(env.max_agents) != env.num_envs:
-            raise ValueError(
-                f"env: num_envs ({env.num_envs}) must equal num_worlds * max_agents "
-                f"({env.num_worlds} x {env.max_agents}) for branching"
-            )
-        if not isinstance(self.action_space, spaces.Discrete):
-            raise ValueError(f"env: counterfactual=True needs a Discrete action space, got {self.action_space}")
-
     def _reset_runtime(self) -> None:
         self._driver: SearchDriver | None = None
         self._teachers: list[Teacher] = []
         self._last_active: np.ndarray | None = None
         self._progress: LearnProgressBar | None = None
-
-    @property
-    def _branching(self) -> bool:
-        return self.counterfactual and self.env is not None
-
-    @property
-    def search_stats(self) -> SearchStats:
-        """Search counts of the last generation (empty before the first one)."""
-        return self._driver.stats if self._driver is not None else SearchStats()
 
     # ================================================================== model setup
     def _setup_model(self) -> None:
@@ -345,10 +265,6 @@ class CounterPlay(RecurrentPPO):
     def _excluded_save_params(self) -> list[str]:
         return super()._excluded_save_params() + list(self._RUNTIME_ATTRS)
 
-    #: settings added after checkpoints were first written, with the behaviour such an older
-    #: checkpoint was trained with (it comes back with that, not with today's default)
-    LEGACY_SETTINGS: ClassVar[dict[str, Any]] = {"root_lifetime": "generation"}
-
     @classmethod
     def load(cls, path: Any, env: GymEnv | None = None, device: th.device | str = "auto",
              custom_objects: dict[str, Any] | None = None, print_system_info: bool = False,
@@ -357,19 +273,6 @@ class CounterPlay(RecurrentPPO):
                              print_system_info=print_system_info, force_reset=force_reset, **kwargs)
         model.apply_legacy_settings(path, keep=tuple(kwargs))
         return model
-
-    def apply_legacy_settings(self, path: Any, keep: Sequence[str] = ()) -> None:
-        """Give every :attr:`LEGACY_SETTINGS` entry that the checkpoint at ``path`` did not
-        save its value of that time (``keep``: names set explicitly by the caller). Used by
-        :meth:`load` and by grid resumes (``set_parameters`` of a checkpoint)."""
-        from cpalgo.checkpoint import saved_data_keys
-
-        saved = saved_data_keys(path) if isinstance(path, (str, os.PathLike)) else None
-        if saved is None:
-            return
-        for name, value in self.LEGACY_SETTINGS.items():
-            if name not in saved and name not in keep:
-                setattr(self, name, value)
 
     # ================================================================== learn
     def _update_current_progress_remaining(self, num_timesteps: int, total_timesteps: int) -> None:
@@ -522,213 +425,7 @@ class CounterPlay(RecurrentPPO):
 
         return True
 
-    @property
-    def stops_exactly(self) -> bool:
-        """Whether ``learn`` cuts its last rollout at the step that reaches the budget: with
-        ``post_budget`` set (every registered method's ``learn(B)``). Without it, ``learn``
-        runs whole generations, as the parent does."""
-        return self.budget.post_budget is not None
-
-    def _counted_transitions(self, env: VecEnv) -> int:
-        """Transitions of the step just taken that count toward B_post: the slots that were
-        live before it (every slot without masking, which is SB3's count)."""
-        if not self.mask_inactive or self._last_active is None:
-            return env.num_envs
-        return int(np.count_nonzero(self._last_active))
-
-    def _bootstrap_timeouts(self, rewards: np.ndarray, dones: np.ndarray, infos: list[dict], lstm_states: RNNStates) -> None:
-        """Add gamma * V(terminal obs) to truncated episodes' last reward.
-
-        Features off: the parent's per-index code (bit-identical), visiting only done
-        indices. Otherwise one batched critic pass over every truncated index.
-        """
-        done_idx = np.flatnonzero(dones)
-        if done_idx.size == 0:
-            return
-        truncated = [
-            idx for idx in done_idx.tolist()
-            if infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False)
-        ]
-        if not truncated:
-            return
-        batched = (self.counterfactual or self.mask_inactive) and not isinstance(self.observation_space, spaces.Dict)
-        if not batched:
-            for idx in truncated:
-                terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
-                with th.no_grad():
-                    terminal_lstm_state = (
-                        lstm_states.vf[0][:, idx : idx + 1, :].contiguous(),
-                        lstm_states.vf[1][:, idx : idx + 1, :].contiguous(),
-                    )
-                    episode_starts = th.tensor([False], dtype=th.float32, device=self.device)
-                    terminal_value = self.policy.predict_values(terminal_obs, terminal_lstm_state, episode_starts)[0]
-                rewards[idx] += self.gamma * terminal_value
-            return
-        idx = np.asarray(truncated, np.int64)
-        terminal_obs = np.stack([infos[i]["terminal_observation"] for i in truncated])
-        with th.no_grad():
-            obs_t = self.policy.obs_to_tensor(terminal_obs)[0]
-            sel = th.as_tensor(idx, device=self.device)
-            state = (lstm_states.vf[0][:, sel].contiguous(), lstm_states.vf[1][:, sel].contiguous())
-            starts = th.zeros(idx.size, dtype=th.float32, device=self.device)
-            terminal_values = self.policy.predict_values(obs_t, state, starts).reshape(-1).cpu().numpy()
-        rewards[idx] += (self.gamma * terminal_values).astype(rewards.dtype)
-
-    # ------------------------------------------------------------------ live slots
-    def _observed_active(self, env: VecEnv, infos: list[dict] | None) -> np.ndarray:
-        """(num_envs,) bool: slots whose current observation belongs to a live agent."""
-        if hasattr(env, "active_mask"):
-            return np.asarray(env.active_mask(), bool).reshape(-1)
-        if infos is not None and infos and "active" in infos[0]:
-            return np.fromiter((bool(i.get("active", True)) for i in infos), bool, count=len(infos))
-        return np.ones(env.num_envs, bool)
-
-    def _active_index(self, n: int) -> th.Tensor | None:
-        """Indices of the live slots, or None when inference runs on every slot."""
-        active = self._last_active
-        if not self.mask_inactive or active is None or active.size != n or active.all():
-            return None
-        return th.as_tensor(np.flatnonzero(active), device=self.device)
-
-    def _policy_step(
-        self, env: VecEnv, obs_tensor: th.Tensor, lstm_states: RNNStates, episode_starts: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, RNNStates]:
-        """One decision of every slot: the search driver's (roots, recorded draws) when
-        branching, else ``policy.forward`` on the live slots only (inactive slots get
-        action 0, value 0, log-prob 0, which the masked buffer never uses)."""
-        n = obs_tensor.shape[0]
-        idx = self._active_index(n)
-        if self._branching:
-            assert self._driver is not None
-            return self._driver.policy_step(env.sim, self.policy, obs_tensor, lstm_states, episode_starts, idx)
-        if idx is None:
-            return self.policy(obs_tensor, lstm_states, episode_starts)
-        actions, values, log_probs, states = self.policy(obs_tensor[idx], take_states(lstm_states, idx),
-                                                         episode_starts[idx])
-        full_actions = th.zeros((n, *actions.shape[1:]), dtype=actions.dtype, device=self.device)
-        full_values = th.zeros((n, *values.shape[1:]), dtype=values.dtype, device=self.device)
-        full_log_probs = th.zeros(n, dtype=log_probs.dtype, device=self.device)
-        full_actions[idx], full_values[idx], full_log_probs[idx] = actions, values, log_probs
-        return full_actions, full_values, full_log_probs, put_states(lstm_states, idx, states)
-
-    # ------------------------------------------------------------------ hooks
-    def _on_env_reset(self) -> None:
-        """Called when ``learn`` reset the env: fresh activity mask, stale roots dropped."""
-        assert self.env is not None
-        self._last_active = self._observed_active(self.env, getattr(self.env, "reset_infos", None))
-        if self._branching:
-            self._ensure_driver(self.env)
-        if self._driver is not None:
-            self._driver.on_env_reset()
-
-    def _ensure_driver(self, env: VecEnv) -> None:
-        if self._driver is None:
-            def count(n: int) -> None:
-                self.num_timesteps += int(n)
-
-            self._driver = SearchDriver(self._search_settings(), self.budget, self.device, count_transitions=count)
-            self._driver.on_wave = lambda *wave: keep_wave(self, *wave)
-        transform = None
-        vec_normalize = unwrap_vec_normalize(env)
-        if vec_normalize is not None:
-            def transform(obs: th.Tensor) -> th.Tensor:
-                return th.as_tensor(vec_normalize.normalize_obs(obs.cpu().numpy()), device=obs.device)
-        self._driver.attach(env, self.policy, transform)
-
-    def _rollout_start(self, env: VecEnv) -> None:
-        self.budget.start_generation()
-        if self._last_active is None:
-            self._last_active = self._observed_active(env, None)
-        if self._branching:
-            self._ensure_driver(env)
-            self._driver.start_rollout()
-        self._set_phase("rollout")
-
-    def _after_env_step(self, env: VecEnv, dones: np.ndarray, infos: list[dict]) -> tuple[np.ndarray, np.ndarray | None]:
-        """Budget count, failures -> search requests, episode bookkeeping.
-
-        Returns the new activity mask and the slots revived without a done (or None).
-        """
-        assert self._last_active is not None
-        was_active = self._last_active
-        self.budget.add_main(int(np.count_nonzero(was_active)))
-        new_active = self._observed_active(env, infos)
-        if self._branching:
-            assert self._driver is not None
-            self._driver.after_step(env.sim, dones, infos, was_active)
-        revived = None
-        if self.mask_inactive:
-            revived = new_active & ~was_active & ~np.asarray(dones, bool)
-        return new_active, revived
-
-    def _rollout_end(self, env: VecEnv) -> None:
-        """Finish the previous generation's searches (their teachers go to this update)
-        and queue this generation's for the next rollout."""
-        if self._driver is not None and self._branching:
-            self._set_phase("search")
-            self._driver.end_rollout(self.policy, self.budget.generation_main)
-            self._teachers = self._driver.take_teachers()
-            stats = self._driver.stats
-            for key, value in stats.as_dict().items():
-                self.search_totals[key] = self.search_totals.get(key, 0) + value
-        summary = self.budget.end_generation()
-        self._log_generation(summary)
-        self._set_phase("train")
-
-    def replay_root(self, world: int, root_step: int, main_draws: bool = True) -> BranchResult:
-        """Re-run a stored root of ``world``'s current episode as one factual branch.
-
-        With ``main_draws`` the branch samples every decision from the uniforms the main
-        rollout used (fresh draws once those run out), so it reproduces the recorded
-        actions and trajectory: the check that branches start from the true state. That
-        holds for a root recorded since the policy's last update; a root of the previous
-        rollout (kept with ``root_lifetime="episode"``) replays under the updated policy.
-        Returns the :class:`BranchResult` (``actions`` (1, T, A), ``xy`` (1, T + 1, A, 2)).
-        """
-        if self._driver is None:
-            raise ValueError("world: no roots recorded yet (counterfactual=True and a rollout are needed)")
-        return self._driver.replay_root(self.policy, world, root_step, main_draws)
-
-    # ================================================================== logging
-    def _log_generation(self, summary: dict[str, int]) -> None:
-        if not self.counterfactual:
-            return
-        self.search_stats.record(self.logger.record, self.panel, self.verify)
-        gen_total = summary["main"] + summary["branch"]
-        self.logger.record("counterplay/branch_share", summary["branch"] / gen_total if gen_total else 0.0)
-        for key in ("main", "factual", "candidate", "verification", "total"):
-            self.logger.record(f"counterplay/budget_{key}", getattr(self.budget, key))
-
     # ================================================================== train
-    def _prepare_distillation(self) -> TeacherBatch | None:
-        if not self._teachers or self.env is None or float(self.distill_coef) == 0.0:
-            return None
-        return collate_teachers(
-            self._teachers, self._deploy_raw, self._student_condition_writer(), STYLE_MASK, device=self.device,
-            policy=self.policy if self.distill == "ppo" else None, gamma=self.gamma,
-        )
-
-    def _student_condition_writer(self) -> Any:
-        """``replace_condition(obs, raw_conditions)`` for the teachers' recorded observations.
-        Those are the policy's inputs: under a ``VecNormalize`` wrapper already normalised, so
-        the written condition slice gets the wrapper's normalisation too (the student then sees
-        ``w_dep`` as it would in a rollout)."""
-        layout = self.env.obs_layout
-        vec_normalize = unwrap_vec_normalize(self.env)
-        if vec_normalize is None or not vec_normalize.norm_obs:
-            return layout.replace_condition
-        cond = layout.condition
-        mean = th.as_tensor(vec_normalize.obs_rms.mean[cond], dtype=th.float32, device=self.device)
-        scale = th.as_tensor(np.sqrt(vec_normalize.obs_rms.var[cond] + vec_normalize.epsilon), dtype=th.float32,
-                             device=self.device)
-        clip = float(vec_normalize.clip_obs)
-
-        def write(obs: th.Tensor, conditions: th.Tensor) -> th.Tensor:
-            out = th.as_tensor(layout.replace_condition(obs, conditions), dtype=th.float32, device=self.device)
-            out[..., cond] = th.clamp((out[..., cond] - mean) / scale, -clip, clip)
-            return out
-
-        return write
 
     def train(self) -> None:
         """RecurrentPPO's update (:func:`cpalgo.common.ppo_update.run_update`) with masked

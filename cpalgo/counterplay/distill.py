@@ -13,20 +13,28 @@ not change) and runs its LSTM from the stored root memory.
 ``kl`` (default): ``KL(teacher || student)`` averaged over each retry's steps, then over
 retries. ``ppo`` (ablation): the clipped PPO surrogate on the teacher's actions with
 discounted-return advantages from the frozen critic, under the deployment condition.
+
+:class:`DistillationMixin` (one of :class:`~cpalgo.counterplay.algorithm.CounterPlay`'s
+bases) prepares a generation's :class:`TeacherBatch` for the update
+(``_prepare_distillation``), writing ``w_dep`` into the teachers' observations as the
+policy sees them (``_student_condition_writer``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch as th
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
+from stable_baselines3.common.vec_env import unwrap_vec_normalize
 
 from cpalgo.common.policy_utils import actor_logits, critic_values
+from cpsim.conditions import STYLE_MASK
 
-__all__ = ["DISTILL_MODES", "Teacher", "TeacherBatch", "collate_teachers", "kl_loss", "ppo_loss", "distill_loss"]
+__all__ = ["DISTILL_MODES", "Teacher", "TeacherBatch", "collate_teachers", "kl_loss", "ppo_loss", "distill_loss",
+           "DistillationMixin"]
 
 DISTILL_MODES: tuple[str, ...] = ("kl", "ppo")
 
@@ -216,3 +224,37 @@ def distill_loss(policy: RecurrentActorCriticPolicy, batch: TeacherBatch, mode: 
     if mode == "ppo":
         return ppo_loss(policy, batch, clip_range)
     raise ValueError(f"distill: expected one of {DISTILL_MODES}, got {mode!r}")
+
+
+class DistillationMixin:
+    """A CounterPlay model's preparation of its distillation batch (see the module docstring)."""
+
+    def _prepare_distillation(self) -> TeacherBatch | None:
+        if not self._teachers or self.env is None or float(self.distill_coef) == 0.0:
+            return None
+        return collate_teachers(
+            self._teachers, self._deploy_raw, self._student_condition_writer(), STYLE_MASK, device=self.device,
+            policy=self.policy if self.distill == "ppo" else None, gamma=self.gamma,
+        )
+
+    def _student_condition_writer(self) -> Any:
+        """``replace_condition(obs, raw_conditions)`` for the teachers' recorded observations.
+        Those are the policy's inputs: under a ``VecNormalize`` wrapper already normalised, so
+        the written condition slice gets the wrapper's normalisation too (the student then sees
+        ``w_dep`` as it would in a rollout)."""
+        layout = self.env.obs_layout
+        vec_normalize = unwrap_vec_normalize(self.env)
+        if vec_normalize is None or not vec_normalize.norm_obs:
+            return layout.replace_condition
+        cond = layout.condition
+        mean = th.as_tensor(vec_normalize.obs_rms.mean[cond], dtype=th.float32, device=self.device)
+        scale = th.as_tensor(np.sqrt(vec_normalize.obs_rms.var[cond] + vec_normalize.epsilon), dtype=th.float32,
+                             device=self.device)
+        clip = float(vec_normalize.clip_obs)
+
+        def write(obs: th.Tensor, conditions: th.Tensor) -> th.Tensor:
+            out = th.as_tensor(layout.replace_condition(obs, conditions), dtype=th.float32, device=self.device)
+            out[..., cond] = th.clamp((out[..., cond] - mean) / scale, -clip, clip)
+            return out
+
+        return write
