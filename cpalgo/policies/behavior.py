@@ -111,10 +111,27 @@ class BehaviorLstmPolicy(FusedLstmMixin, RecurrentActorCriticPolicy):
         super().__init__(observation_space, action_space, lr_schedule, shared_lstm=True, enable_critic_lstm=False,
                          **kwargs)
 
+    def _features(self, obs: th.Tensor, n_seq: int) -> th.Tensor:
+        """The encoder's output for every row; inside :func:`cpalgo.policies.sequence_lengths`
+        (PPO minibatches of padded sequences) it runs on the counted rows only and the
+        padding after each sequence gets zeros, which the fused LSTM skips and every loss
+        masks out (sb3-contrib pads sequences to the longest: 1.1-1.8x the counted rows)."""
+        lengths = self._sequence_lengths
+        rows = obs.shape[0]
+        if lengths is None or lengths.numel() != n_seq or rows % n_seq or rows == n_seq:
+            return self.extract_features(obs)
+        seq_len = rows // n_seq
+        counted = (th.arange(seq_len)[None, :] < lengths[:, None]).reshape(-1).to(obs.device)
+        if bool(counted.all()):
+            return self.extract_features(obs)
+        features = obs.new_zeros((rows, self.features_dim))
+        features[counted] = self.extract_features(obs[counted])
+        return features
+
     def _latent(self, obs: th.Tensor, lstm_states: tuple[th.Tensor, th.Tensor], episode_starts: th.Tensor
                 ) -> tuple[th.Tensor, th.Tensor, tuple[th.Tensor, th.Tensor]]:
-        latent, states = self._process_sequence(self.extract_features(obs), lstm_states, episode_starts,
-                                                self.lstm_actor)
+        features = self._features(obs, lstm_states[0].shape[1])
+        latent, states = self._process_sequence(features, lstm_states, episode_starts, self.lstm_actor)
         return self.mlp_extractor.forward_actor(latent), self.mlp_extractor.forward_critic(latent), states
 
     def forward(self, obs: th.Tensor, lstm_states: RNNStates, episode_starts: th.Tensor,

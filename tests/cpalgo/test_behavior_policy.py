@@ -134,3 +134,34 @@ def test_schedule_runs_over_the_whole_run_across_learn_calls(env):
     assert lr == pytest.approx(CosineSchedule(1e-3)(progress))
     with pytest.raises(ValueError, match="schedule_timesteps"):
         CounterPlay("BehaviorLstmPolicy", env, counterfactual=False, schedule_timesteps=0)
+
+
+def test_training_pass_encodes_only_counted_rows():
+    """In a minibatch of padded sequences the encoder sees only the counted rows; values,
+    log-probs and gradients on those rows equal the pass over every row."""
+    from cpalgo.policies import sequence_lengths
+
+    th.manual_seed(0)
+    policy = _policy(lstm_hidden_size=16)
+    n_seq, seq_len = 3, 5
+    lengths = th.tensor([5, 2, 3])
+    mask = (th.arange(seq_len)[None, :] < lengths[:, None]).reshape(-1)
+    obs, actions = _obs(n_seq * seq_len, seed=1), th.randint(0, 91, (n_seq * seq_len,))
+    zeros = th.zeros(1, n_seq, 16)
+    states = RNNStates((zeros, zeros), (zeros, zeros))
+    starts = th.zeros(n_seq * seq_len)
+    seen = []
+    policy.features_extractor.register_forward_hook(lambda mod, inp, out: seen.append(inp[0].shape[0]))
+    full = policy.evaluate_actions(obs, actions, states, starts)
+    with sequence_lengths(policy, mask, n_seq):
+        part = policy.evaluate_actions(obs, actions, states, starts)
+    assert seen == [n_seq * seq_len, int(mask.sum())]
+    for a, b in zip(full, part):
+        th.testing.assert_close(a.flatten()[mask], b.flatten()[mask])
+    grads = []
+    for out in (full, part):
+        policy.zero_grad()
+        (out[0].flatten()[mask].sum() + out[1][mask].sum()).backward(retain_graph=True)
+        grads.append([p.grad.clone() for p in policy.parameters() if p.grad is not None])
+    for a, b in zip(*grads):
+        th.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
