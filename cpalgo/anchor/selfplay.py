@@ -53,7 +53,7 @@ CURVE_COLUMNS: tuple[str, ...] = (
     ("segment", "timesteps", "wall_s", "learning_rate", "explained_variance", "train_episodes")
     + tuple(f"train_{o}" for o in OUTCOMES)
     + tuple(f"{s}_{o}" for s in STYLES for o in OUTCOMES)
-    + ("value_failures", "value_falls", "value_change")
+    + ("value_failures", "value_falls", "value_change", "normal_entropy")
 )
 #: seed of the held-out procedural tasks (``cpsim.scenario.eval_pool``), shared with the CLI
 HELD_OUT_SEED = 0
@@ -180,8 +180,30 @@ def _evaluate(model: Any, recipe: Any, tasks: Sequence[Any]) -> dict[str, float]
     # does the critic know the task: its value over the 2 s before each failure (normal style)
     trend = value_before_failures(model, tasks, condition="normal",
                                   max_agents=int(recipe.env_kwargs.get("max_agents", 8)), config=config or None)
-    row.update(value_failures=trend.failures, value_falls=trend.falls, value_change=trend.mean_change)
+    row.update(value_failures=trend.failures, value_falls=trend.falls, value_change=trend.mean_change,
+               normal_entropy=_first_step_entropy(model, tasks, recipe, config))
     return row
+
+
+def _first_step_entropy(model: Any, tasks: Sequence[Any], recipe: Any, config: dict[str, Any]) -> float:
+    """Mean entropy (nats) of the policy's action distribution at the first decision of the
+    held-out tasks under the normal profile: a collapse to one action shows here first."""
+    from cpsim import SimConfig, Simulator
+    from cpsim.conditions import NUM_CONDITION_FIELDS, deployment_condition
+
+    sim_config = SimConfig.from_dict(config or None).replace(goal_criterion="evaluation")
+    max_agents = int(recipe.env_kwargs.get("max_agents", 8))
+    sim = Simulator(list(tasks), num_worlds=len(tasks), max_agents=max_agents, config=sim_config, seed=0)
+    cond = deployment_condition("normal", "condition")
+    sim.reset(scenario_index=np.arange(len(tasks)),
+              conditions=np.broadcast_to(cond, (len(tasks), max_agents, NUM_CONDITION_FIELDS)))
+    live = sim.policy_mask.reshape(-1).cpu().numpy()
+    obs = th.as_tensor(sim.obs.reshape(live.size, -1).cpu().numpy()[live])
+    lstm = model.policy.lstm_actor
+    zeros = th.zeros((lstm.num_layers, obs.shape[0], lstm.hidden_size))
+    with th.no_grad():
+        dist, _ = model.policy.get_distribution(obs, (zeros, zeros.clone()), th.ones(obs.shape[0]))
+        return float(dist.entropy().mean())
 
 
 def _write_curve(run_dir: Path, rows: Sequence[dict[str, Any]]) -> None:
@@ -360,7 +382,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             f" /s), held-out goal aggr/normal/caut "
             f"{row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / {row['cautious_goal']:.1%}, "
             f"normal collision {row['normal_collision']:.1%} off-road {row['normal_offroad']:.1%} "
-            f"timeout {row['normal_timeout']:.1%}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
+            f"timeout {row['normal_timeout']:.1%}, entropy {row['normal_entropy']:.2f}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
         if (run_dir / STOP_FILE).exists():
             log(f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}")
             break
