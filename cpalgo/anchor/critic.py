@@ -17,6 +17,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch as th
 
+from cpalgo.common.policy_utils import put_states, take_states
 from cpsim.conditions import NUM_CONDITION_FIELDS, deployment_condition
 from cpsim.config import Controller, Outcome, SimConfig
 from cpsim.simulator import Simulator
@@ -81,13 +82,17 @@ def value_before_failures(model: Any, scenarios: Sequence[Any], condition: Any =
     ended_at = np.full(W * A, -1)
     for t in range(T):
         live = (sim.policy_mask.reshape(-1).cpu().numpy()).copy()
-        obs = sim.obs.reshape(W * A, -1).cpu().numpy().copy()
-        obs[~live] = 0.0
-        with th.no_grad():
-            actions, vals, _, states = policy(th.as_tensor(obs), states, starts, deterministic=deterministic)
+        idx = th.as_tensor(np.flatnonzero(live))
+        actions = th.zeros(W * A, dtype=th.int32)
+        if idx.numel():  # the policy runs on the live slots only (rows are independent)
+            obs = th.as_tensor(sim.obs.reshape(W * A, -1).cpu().numpy()[live])
+            with th.no_grad():
+                act, vals, _, part = policy(obs, take_states(states, idx), starts[idx], deterministic=deterministic)
+            states = put_states(states, idx, part)
+            actions[idx] = act.reshape(-1).to(th.int32)
+            values[t, live] = vals.reshape(-1).numpy()
         starts = th.zeros(W * A)
-        values[t, live] = vals.reshape(-1).numpy()[live]
-        sim.step(actions.reshape(W, A).to(th.int32))
+        sim.step(actions.reshape(W, A))
         now_done = live & ~sim.policy_mask.reshape(-1).cpu().numpy()
         ended_at[now_done & (ended_at < 0)] = t
         if bool(sim.world_done.all()):

@@ -71,12 +71,21 @@ def selfplay_outcomes(model: Any, scenarios: Sequence[Scenario], condition: Any 
         state = None
         starts = np.ones(W * A, bool)
         for _ in range(sim.config.episode_steps):
-            obs = sim.obs.reshape(W * A, -1).cpu().numpy().copy()
-            obs[~sim.policy_mask.reshape(-1).cpu().numpy()] = 0.0
-            actions, state = model.predict(obs, state=state, episode_start=starts,
-                                           deterministic=deterministic)
+            # the policy runs on the live slots only (rows are independent; the rest act 0)
+            live = np.flatnonzero(sim.policy_mask.reshape(-1).cpu().numpy())
+            actions = np.zeros(W * A, np.int64)
+            if live.size:
+                obs = sim.obs.reshape(W * A, -1).cpu().numpy()[live]
+                sub = None if state is None else tuple(s[:, live] for s in state)
+                act, new = model.predict(obs, state=sub, episode_start=starts[live], deterministic=deterministic)
+                actions[live] = np.asarray(act).reshape(-1)
+                if new is not None:
+                    if state is None:
+                        state = tuple(np.zeros((s.shape[0], W * A, *s.shape[2:]), s.dtype) for s in new)
+                    for full, part in zip(state, new):
+                        full[:, live] = part
             starts[:] = False
-            sim.step(torch.as_tensor(np.asarray(actions).reshape(W, A), dtype=torch.int32))
+            sim.step(torch.as_tensor(actions.reshape(W, A), dtype=torch.int32))
             if bool(sim.world_done.all()):
                 break
 
