@@ -64,7 +64,15 @@ def value_before_failures(model: Any, scenarios: Sequence[Any], condition: Any =
     cond = deployment_condition(condition, "condition")
     config = SimConfig.from_dict(config).replace(goal_criterion="evaluation")
     policy = model.policy
-    th.manual_seed(seed)
+    # sampled actions from a seeded generator state that is restored afterwards: the check
+    # neither depends on nor disturbs the caller's torch RNG (a training run's sampling)
+    with th.random.fork_rng(devices=[]):
+        th.manual_seed(seed)
+        return _value_trend(policy, scenarios, cond, config, max_agents, horizon, deterministic, seed)
+
+
+def _value_trend(policy: Any, scenarios: list[Any], cond: np.ndarray, config: SimConfig, max_agents: int,
+                 horizon: int, deterministic: bool, seed: int) -> ValueTrend:
     changes: dict[str, list[float]] = {"collision": [], "offroad": [], "timeout": []}
     names = {int(Outcome.COLLISION): "collision", int(Outcome.OFFROAD): "offroad", int(Outcome.TIMEOUT): "timeout"}
     sim = Simulator(scenarios, num_worlds=len(scenarios), max_agents=max_agents, config=config, seed=seed)
