@@ -52,3 +52,10 @@ def test_falls_counts_failures_whose_value_dropped(model):
     assert 0.0 <= trend.falls <= 1.0 and trend.failures == down.failures
     with pytest.raises(ValueError, match="horizon"):
         value_before_failures(model, tasks, horizon=0)
+
+
+def test_the_check_leaves_the_callers_rng_alone(model):
+    th.manual_seed(123)
+    before = th.get_rng_state()
+    value_before_failures(model, eval_pool(2, seed=0), config={"dynamics": "classic"}, horizon=5)
+    assert th.equal(th.get_rng_state(), before)
