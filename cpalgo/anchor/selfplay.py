@@ -375,6 +375,9 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         state["wall_s"] = row["wall_s"]
         state["rng"] = _rng_state()
         model.resume_state = state
+        # the next segment starts from a reset: the last observations (5.7 MB at 2,048 slots,
+        # which SB3 would save) are not needed to continue
+        model._last_obs = model._last_original_obs = None
         save_model_atomic(model, run_dir / CHECKPOINT_FILE)
         _write_curve(run_dir, state["rows"])
         log(f"segment {segment}: {model.num_timesteps:,} transitions, {train_wall:.0f} s "

@@ -65,6 +65,8 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
     assert [int(r["segment"]) for r in rows] == list(range(len(rows))) and len(rows) >= 3
     assert rows[-1]["timesteps"] >= 300 > rows[-2]["timesteps"]
     assert whole.num_timesteps == rows[-1]["timesteps"]
+    with zipfile.ZipFile(tmp_path / "whole" / "checkpoint.zip") as archive:
+        assert '"_last_obs": null' in archive.read("data").decode()  # not needed to resume
 
     # piece 1 stops after its first segment ...
     train_anchor_run(tmp_path / "pieces", _settings(recipe), stop_after_s=0.0, log=_quiet)
