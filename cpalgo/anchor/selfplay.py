@@ -250,14 +250,13 @@ def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None)
         axes[1].plot(x, [100 * r[f"normal_{o}"] for r in rows], marker="o", ms=3, color=color, label=o)
     axes[1].set(title="normal style: failures", xlabel="transitions (M)", ylabel="%")
     axes[1].legend(fontsize=8)
-    axes[2].plot(x, [r.get("explained_variance", np.nan) for r in rows], marker="o", ms=3)
-    axes[2].set(title="critic", xlabel="transitions (M)")
+    axes[2].plot(x, [r.get("explained_variance", np.nan) for r in rows], marker="o", ms=3,
+                 label="explained variance")
     if any("value_falls" in r for r in rows):
         axes[2].plot(x, [r.get("value_falls", np.nan) for r in rows], marker="s", ms=3,
-                     label="share of failures whose value falls over the last 2 s")
-    axes[2].plot([], [])
-    axes[2].legend(["explained variance"] + (["value falls before failure"] if any("value_falls" in r for r in rows)
-                                             else []), fontsize=8)
+                     label="value falls before failure")
+    axes[2].set(title="critic", xlabel="transitions (M)")
+    axes[2].legend(fontsize=8)
     top = axes[0].secondary_xaxis("top", functions=(
         lambda v: np.interp(v, x, [r["wall_s"] / 3600 for r in rows]),
         lambda h: np.interp(h, [r["wall_s"] / 3600 for r in rows], x)))
@@ -279,7 +278,7 @@ def _new_model(recipe: Any, settings: AnchorRunSettings, env: Any) -> Any:
                        schedule_timesteps=settings.timesteps, **kwargs)
 
 
-def _recipe_from_run(run_dir: Path, doc: dict[str, Any]) -> Any:
+def _recipe_from_run(run_dir: Path) -> Any:
     from cpalgo.recipes import load_recipe
 
     path = run_dir / "recipe.yml"
@@ -311,7 +310,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             raise ValueError(f"resume: {str(run_dir)!r} holds no {RUN_FILE} and {CHECKPOINT_FILE}")
         doc = json.loads((run_dir / RUN_FILE).read_text())
         settings = AnchorRunSettings.from_dict(doc["settings"], str(run_dir / RUN_FILE))
-        recipe = _recipe_from_run(run_dir, doc)
+        recipe = _recipe_from_run(run_dir)
     else:
         if settings is None:
             raise ValueError("settings: needed to start a run")
