@@ -54,7 +54,12 @@ CURVE_COLUMNS: tuple[str, ...] = (
     + tuple(f"train_{o}" for o in OUTCOMES)
     + tuple(f"{s}_{o}" for s in STYLES for o in OUTCOMES)
     + ("value_failures", "value_falls", "value_change", "normal_entropy")
+    + ("approx_kl", "clip_fraction", "entropy", "value_loss")
 )
+#: PPO update statistics averaged over a segment's updates: logger key -> curve column
+#: (``entropy`` is the mean policy entropy over the trained decisions, in nats)
+UPDATE_STATS: dict[str, str] = {"train/approx_kl": "approx_kl", "train/clip_fraction": "clip_fraction",
+                                "train/entropy_loss": "entropy", "train/value_loss": "value_loss"}
 #: seed of the held-out procedural tasks (``cpsim.scenario.eval_pool``), shared with the CLI
 HELD_OUT_SEED = 0
 
@@ -106,12 +111,19 @@ class AnchorRunSettings:
 
 
 class _SegmentStats(BaseCallback):
-    """Training-episode outcomes and the critic's explained variance over live slots."""
+    """Training-episode outcomes, the critic's explained variance over live slots and the PPO
+    update statistics (read at each rollout's end, when the logger still holds the previous
+    update's values)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.outcomes = dict.fromkeys(OUTCOMES, 0)
         self.ev: list[float] = []
+        self.updates: dict[str, list[float]] = {column: [] for column in UPDATE_STATS.values()}
+
+    def update_means(self) -> dict[str, float]:
+        """Each update statistic's mean over the segment (NaN before any update)."""
+        return {column: float(np.mean(v)) if v else float("nan") for column, v in self.updates.items()}
 
     def _on_step(self) -> bool:
         for info in self.locals.get("infos", ()):
@@ -128,6 +140,14 @@ class _SegmentStats(BaseCallback):
         var = float(np.var(returns))
         if values.size > 1 and var > 0:
             self.ev.append(1.0 - float(np.var(returns - values)) / var)
+        self.read_update(self.model.logger.name_to_value)
+
+    def read_update(self, logged: dict[str, Any]) -> None:
+        """Keep the update statistics in ``logged`` (a logger's ``name_to_value``)."""
+        for key, column in UPDATE_STATS.items():
+            if key in logged:
+                value = float(logged[key])
+                self.updates[column].append(-value if column == "entropy" else value)
 
 
 def _rng_state() -> dict[str, Any]:
@@ -358,6 +378,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         t0 = time.perf_counter()
         model.learn(max(target - model.num_timesteps, 1), reset_num_timesteps=False, callback=stats,
                     progress_bar=False)
+        stats.read_update(model.logger.name_to_value)  # the segment's last update: no rollout end follows it
         env.close()
         train_wall = time.perf_counter() - t0
         row: dict[str, Any] = {"segment": segment, "timesteps": int(model.num_timesteps),
@@ -368,6 +389,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         row["train_episodes"] = episodes
         for o in OUTCOMES:
             row[f"train_{o}"] = stats.outcomes[o] / episodes if episodes else float("nan")
+        row.update(stats.update_means())
         row.update(_evaluate(model, recipe, tasks))
         state["rows"] = list(state["rows"]) + [row]
         state["segment"] = segment + 1
@@ -384,7 +406,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             f" /s), held-out goal aggr/normal/caut "
             f"{row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / {row['cautious_goal']:.1%}, "
             f"normal collision {row['normal_collision']:.1%} off-road {row['normal_offroad']:.1%} "
-            f"timeout {row['normal_timeout']:.1%}, entropy {row['normal_entropy']:.2f}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
+            f"timeout {row['normal_timeout']:.1%}, entropy {row['normal_entropy']:.2f} (trained {row['entropy']:.2f}), approx_kl {row['approx_kl']:.4f}, clip {row['clip_fraction']:.3f}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
         if (run_dir / STOP_FILE).exists():
             log(f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}")
             break

@@ -65,6 +65,9 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
     assert [int(r["segment"]) for r in rows] == list(range(len(rows))) and len(rows) >= 3
     assert rows[-1]["timesteps"] >= 300 > rows[-2]["timesteps"]
     assert whole.num_timesteps == rows[-1]["timesteps"]
+    # every segment updated the policy at least once: its update statistics are logged
+    assert all(r["approx_kl"] >= 0 and 0 <= r["clip_fraction"] <= 1 and 0 < r["entropy"] <= np.log(91) + 1e-6
+               and r["value_loss"] > 0 for r in rows)
     with zipfile.ZipFile(tmp_path / "whole" / "checkpoint.zip") as archive:
         assert '"_last_obs": null' in archive.read("data").decode()  # not needed to resume
 
