@@ -60,6 +60,10 @@ CURVE_COLUMNS: tuple[str, ...] = (
 #: (``entropy`` is the mean policy entropy over the trained decisions, in nats)
 UPDATE_STATS: dict[str, str] = {"train/approx_kl": "approx_kl", "train/clip_fraction": "clip_fraction",
                                 "train/entropy_loss": "entropy", "train/value_loss": "value_loss"}
+#: PPO settings a resumed piece may change (``--set KEY=VALUE``): each value is parsed as the
+#: recipe parses it, applied to the loaded model and recorded in ``run.json`` under "changes"
+#: with the segment and transition count it applies from; the checkpoints then carry it.
+CHANGEABLE: tuple[str, ...] = ("learning_rate", "ent_coef", "vf_coef", "clip_range", "max_grad_norm", "n_epochs")
 #: seed of the held-out procedural tasks (``cpsim.scenario.eval_pool``), shared with the CLI
 HELD_OUT_SEED = 0
 
@@ -307,10 +311,67 @@ def _recipe_from_run(run_dir: Path) -> Any:
     return load_recipe(path)
 
 
+def parse_changes(items: Sequence[str]) -> dict[str, Any]:
+    """``["ent_coef=0.01", "learning_rate=cosine(3e-3)"]`` -> checked ``{key: value}``.
+
+    Keys must be in :data:`CHANGEABLE`; schedules (``learning_rate``, ``clip_range``) take the
+    recipe's forms, the rest a number (``n_epochs`` a whole number >= 1). Raises ``ValueError``
+    naming the item.
+    """
+    from cpalgo.recipes import parse_schedule
+
+    changes: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = str(item).partition("=")
+        key, text = key.strip(), text.strip()
+        if not sep or not key or not text:
+            raise ValueError(f"set: expected KEY=VALUE, got {item!r}")
+        if key not in CHANGEABLE:
+            raise ValueError(f"set: {key!r} cannot be changed in a resumed run; changeable: {', '.join(CHANGEABLE)}")
+        if key in ("learning_rate", "clip_range"):
+            parse_schedule(text, key)  # raises naming the key
+            changes[key] = text
+        elif key == "n_epochs":
+            if not text.isdigit() or int(text) < 1:
+                raise ValueError(f"set: n_epochs must be a whole number >= 1, got {text!r}")
+            changes[key] = int(text)
+        else:
+            try:
+                value = float(text)
+            except ValueError:
+                raise ValueError(f"set: {key} must be a number, got {text!r}") from None
+            if not np.isfinite(value) or value < 0:
+                raise ValueError(f"set: {key} must be a finite number >= 0, got {text!r}")
+            changes[key] = value
+    return changes
+
+
+def _apply_changes(model: Any, changes: dict[str, Any]) -> None:
+    """Set the parsed ``changes`` on a loaded model (schedules rebuilt as SB3 builds them)."""
+    try:
+        from stable_baselines3.common.utils import FloatSchedule as get_schedule_fn
+    except ImportError:  # stable-baselines3 < 2.7
+        from stable_baselines3.common.utils import get_schedule_fn
+
+    from cpalgo.recipes import parse_schedule
+
+    for key, value in changes.items():
+        if key == "learning_rate":
+            model.learning_rate = parse_schedule(value, key)
+            model.lr_schedule = get_schedule_fn(model.learning_rate)
+        elif key == "clip_range":
+            model.clip_range = get_schedule_fn(parse_schedule(value, key))
+        else:
+            setattr(model, key, value)
+
+
 def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | None = None, *,
                      resume: bool = False, stop_after_s: float | None = None, command: str | None = None,
-                     log: Callable[[str], None] = print) -> Any:
+                     changes: Sequence[str] = (), log: Callable[[str], None] = print) -> Any:
     """Start (``settings`` given) or resume (``resume=True``) the run in ``run_dir``.
+
+    ``changes`` (resume only): ``KEY=VALUE`` items of :data:`CHANGEABLE` PPO settings that
+    hold from this piece on (recorded in ``run.json``; see :func:`parse_changes`).
 
     Runs segments until the budget is spent, ``stop_after_s`` seconds of this piece have
     passed (checked after each segment), or a ``STOP`` file appears in the run folder.
@@ -323,6 +384,9 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
     from cpsim.atomic import atomic_path
 
     run_dir = Path(run_dir)
+    parsed = parse_changes(changes)
+    if parsed and not resume:
+        raise ValueError("set: settings change only in a resumed run (the recipe holds a new run's)")
     if resume:
         if settings is not None:
             raise ValueError("settings: a resumed run reads its settings from run.json; give none")
@@ -361,6 +425,13 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         state = dict(model.resume_state)
         _set_rng_state(state["rng"])
         log(f"resumed {run_dir} at {model.num_timesteps:,} transitions (segment {state['segment']})")
+        if parsed:
+            _apply_changes(model, parsed)
+            doc.setdefault("changes", []).append({"segment": int(state["segment"]),
+                                                  "timesteps": int(model.num_timesteps), "set": parsed})
+            with atomic_path(run_dir / RUN_FILE) as tmp:
+                Path(tmp).write_text(json.dumps(doc, indent=2) + "\n")
+            log(f"from segment {state['segment']} on: " + ", ".join(f"{k}={v}" for k, v in parsed.items()))
     else:
         state = {"segment": 0, "wall_s": 0.0, "rows": []}
         model = None

@@ -50,8 +50,10 @@ def _train_anchor_run(args: argparse.Namespace) -> int:
                 raise UsageError("--run-dir / --resume: give one (--resume RUN_DIR continues that run)")
             if not os.path.isdir(args.resume):
                 raise UsageError(f"--resume: no such folder {args.resume!r}")
-            train_anchor_run(args.resume, resume=True, stop_after_s=stop, command=command)
+            train_anchor_run(args.resume, resume=True, stop_after_s=stop, command=command, changes=args.set)
             return 0
+        if args.set:
+            raise UsageError("--set: only with --resume (a new run takes its settings from --config)")
         settings = AnchorRunSettings(
             recipe=args.config, seed=args.seed, timesteps=args.timesteps or load_recipe(args.config).n_timesteps,
             segment_timesteps=args.segment, pool_size=args.pool_size, womd_dir=args.add_womd,
@@ -80,6 +82,8 @@ def cmd_curve(args: argparse.Namespace) -> int:
 def cmd_train_anchor(args: argparse.Namespace) -> int:
     if args.run_dir or args.resume:
         return _train_anchor_run(args)
+    if args.set:
+        raise UsageError("--set: only with --resume (it changes a resumable run's PPO settings)")
     _set_threads(args.threads)
 
     from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic

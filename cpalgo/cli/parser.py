@@ -232,6 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "curve.csv, run.json; cpalgo.anchor.selfplay); --timesteps is the run's whole budget")
     ta.add_argument("--resume", default=None, metavar="RUN_DIR",
                     help="continue the run in RUN_DIR from its last checkpoint (settings from its run.json)")
+    ta.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --resume: change a PPO setting from this piece on (learning_rate, ent_coef, vf_coef, "
+                         "clip_range, max_grad_norm, n_epochs; schedules as in a recipe, e.g. "
+                         "learning_rate=cosine(3e-3)); recorded in the run's run.json; repeatable")
     ta.add_argument("--segment", type=_positive_int, default=10_000_000, metavar="N",
                     help="with --run-dir: transitions between checkpoints, curve points and pool draws")
     ta.add_argument("--pool-size", type=_positive_int, default=512, metavar="N",
