@@ -181,16 +181,18 @@ def rect_segment_distance_pairs(centres: np.ndarray, half: float, a: np.ndarray,
     return np.where(hit, 0.0, dist)
 
 
-def near_segment_rows(centres: np.ndarray, dims: tuple[int, int], cell: float, a: np.ndarray, b: np.ndarray,
-                      ids: np.ndarray, radius: float) -> list[np.ndarray]:
+def near_segment_csr(centres: np.ndarray, dims: tuple[int, int], cell: float, a: np.ndarray, b: np.ndarray,
+                     ids: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Per grid cell (``centres`` (C, 2), cell id = iy * nx + ix), the segments of ``ids``
     (ascending) whose distance to the cell's square is <= ``radius``, ascending: the lists
     ``rect_segment_distance(centres, cell / 2, a[ids], b[ids]) <= radius`` gives, computed
-    only for the cells near each segment (its bounding box grown by radius + a cell)."""
+    only for the cells near each segment (its bounding box grown by radius + a cell).
+
+    Returns ``counts`` (C,) int64 and ``items`` (sum(counts),) int64, cell after cell."""
     nx, ny = dims
     C = centres.shape[0]
     if ids.size == 0:
-        return [np.zeros(0, np.int64) for _ in range(C)]
+        return np.zeros(C, np.int64), np.zeros(0, np.int64)
     half = 0.5 * cell
     sa, sb = a[ids].astype(np.float64), b[ids].astype(np.float64)
     lo = np.minimum(sa, sb) - (radius + half)
@@ -209,8 +211,14 @@ def near_segment_rows(centres: np.ndarray, dims: tuple[int, int], cell: float, a
     cells, seg = cells[keep], seg[keep]
     order = np.lexsort((seg, cells))
     cells, seg = cells[order], ids[seg[order]]
-    counts = np.bincount(cells, minlength=C)
-    return np.split(seg.astype(np.int64), np.cumsum(counts)[:-1])
+    return np.bincount(cells, minlength=C).astype(np.int64), seg.astype(np.int64)
+
+
+def near_segment_rows(centres: np.ndarray, dims: tuple[int, int], cell: float, a: np.ndarray, b: np.ndarray,
+                      ids: np.ndarray, radius: float) -> list[np.ndarray]:
+    """:func:`near_segment_csr` as one array per cell (C arrays of segment ids, int64)."""
+    counts, items = near_segment_csr(centres, dims, cell, a, b, ids, radius)
+    return np.split(items, np.cumsum(counts)[:-1])
 
 
 def scenario_segments(sc: Scenario, tol: float, max_len: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -251,11 +259,13 @@ def scenario_segments(sc: Scenario, tol: float, max_len: float) -> tuple[np.ndar
             np.concatenate(t_list), np.concatenate(p_list))
 
 
-def _csr_from_lists(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    counts = np.array([r.size for r in rows], np.int64)
-    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
-    items = np.concatenate(rows).astype(np.int32) if rows else np.zeros(0, np.int32)
-    return start, items
+def _join_csr(counts: list[np.ndarray], items: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-scenario CSR parts (cell counts, global item ids) -> one ``start`` (cells + 1,)
+    and ``items`` array, int32."""
+    all_counts = np.concatenate(counts) if counts else np.zeros(0, np.int64)
+    start = np.concatenate([[0], np.cumsum(all_counts)]).astype(np.int32)
+    joined = np.concatenate(items).astype(np.int32) if items else np.zeros(0, np.int32)
+    return start, joined
 
 
 # ----------------------------------------------------------------------------- the model
@@ -369,9 +379,8 @@ class Model:
         G = len(self.scenarios)
         seg_a, seg_b, seg_t, seg_p = [], [], [], []
         grid_origin, grid_dims, grid_cell, grid_first = [], [], [], []
-        obs_rows: list[np.ndarray] = []
-        lane_rows: list[np.ndarray] = []
-        edge_rows: list[np.ndarray] = []
+        # candidate lists as CSR parts per scenario: (cell counts, global segment ids)
+        lists: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {k: ([], []) for k in ("obs", "lane", "edge")}
         seg_offset = 0
         poly_offset = 0
         cell_offset = 0
@@ -382,14 +391,16 @@ class Model:
             ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
             # cell id = iy * nx + ix  (row-major over y)
             centres = info.origin + (np.stack([ix.ravel(), iy.ravel()], 1) + 0.5) * info.cell
-            obs_rows.extend(r + seg_offset for r in self._observed_rows(centres, info.cell, a, b))
+            parts = {"obs": self._observed_csr(centres, info.cell, a, b)}
             # lane / road-edge candidates: near each segment only (same lists as the full
             # cell x segment distance matrix, a fraction of its cost on large maps)
-            lane_ids = np.flatnonzero(t == RoadType.LANE)
-            edge_ids = np.flatnonzero(t == RoadType.ROAD_EDGE)
-            for ids, radius, rows in ((lane_ids, cfg.lane_radius, lane_rows),
-                                      (edge_ids, self.edge_margin, edge_rows)):
-                rows.extend(r + seg_offset for r in near_segment_rows(centres, info.dims, info.cell, a, b, ids, radius))
+            for name, kind, radius in (("lane", RoadType.LANE, cfg.lane_radius),
+                                       ("edge", RoadType.ROAD_EDGE, self.edge_margin)):
+                ids = np.flatnonzero(t == kind)
+                parts[name] = near_segment_csr(centres, info.dims, info.cell, a, b, ids, radius)
+            for name, (counts, items) in parts.items():
+                lists[name][0].append(counts)
+                lists[name][1].append(items + seg_offset)
             seg_a.append(a)
             seg_b.append(b)
             seg_t.append(t)
@@ -406,9 +417,9 @@ class Model:
         b = np.concatenate(seg_b)
         d = (b - a).astype(np.float64)
         length = np.linalg.norm(d, axis=1)
-        obs_start, obs_items = _csr_from_lists(obs_rows)
-        lane_start, lane_items = _csr_from_lists(lane_rows)
-        edge_start, edge_items = _csr_from_lists(edge_rows)
+        obs_start, obs_items = _join_csr(*lists["obs"])
+        lane_start, lane_items = _join_csr(*lists["lane"])
+        edge_start, edge_items = _join_csr(*lists["edge"])
         return {
             "seg_a": a.astype(np.float32),
             "seg_b": b.astype(np.float32),
@@ -426,23 +437,28 @@ class Model:
             "edge_start": edge_start, "edge_items": edge_items,
         }
 
-    def _observed_rows(self, centres: np.ndarray, cell: float, a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
+    def _observed_csr(self, centres: np.ndarray, cell: float, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Observation candidates of every cell of one scenario's grid: per cell centre
         (C, 2) m, the ids (local to the scenario's (S, 2) segments ``a`` -> ``b``, m) of the
         ``num_road`` segments whose midpoints are nearest to it, within road_radius + half
-        the cell diagonal (``cell`` m), nearest first (empty lists when ``num_road`` is 0)."""
+        the cell diagonal (``cell`` m), nearest first. Returns ``counts`` (C,) and ``items``
+        (int64, cell after cell; empty when ``num_road`` is 0)."""
         cfg = self.config
         M = cfg.num_road
         C = centres.shape[0]
         if M <= 0:
-            return [np.zeros(0, np.int64) for _ in range(C)]
+            return np.zeros(C, np.int64), np.zeros(0, np.int64)
         half_diag = cell * np.sqrt(0.5)
         mids = 0.5 * (a + b)
-        rows: list[np.ndarray] = []
+        counts: list[np.ndarray] = []
+        items: list[np.ndarray] = []
         chunk = max(1, 2_000_000 // max(a.shape[0], 1))  # bounds the (chunk, S) distance matrix
         for c0 in range(0, C, chunk):
             cc = centres[c0:c0 + chunk]
-            dm = np.sqrt(((cc[:, None, :] - mids[None]) ** 2).sum(-1))
+            # the same values as the norm over the last axis, without its slow axis-2 reduction
+            dx = cc[:, None, 0] - mids[None, :, 0]
+            dy = cc[:, None, 1] - mids[None, :, 1]
+            dm = np.sqrt(dx * dx + dy * dy)
             if dm.shape[1] > M:
                 part = np.argpartition(dm, M - 1, axis=1)[:, :M]
             else:
@@ -452,8 +468,9 @@ class Model:
             part = np.take_along_axis(part, order, axis=1)
             dpart = np.take_along_axis(dpart, order, axis=1)
             inside = dpart <= cfg.road_radius + half_diag
-            rows.extend(part[r][inside[r]] for r in range(cc.shape[0]))
-        return rows
+            counts.append(inside.sum(axis=1).astype(np.int64))
+            items.append(part[inside].astype(np.int64))  # row-major: cell after cell, nearest first
+        return np.concatenate(counts), np.concatenate(items)
 
     def _grid_info(self, sc: Scenario, a: np.ndarray, b: np.ndarray) -> GridInfo:
         cfg = self.config
@@ -572,6 +589,6 @@ class Model:
 
 
 __all__ = ["Model", "ModelArrays", "simplify_polyline", "point_segment_distance", "rect_segment_distance",
-           "rect_segment_distance_pairs", "near_segment_rows",
+           "rect_segment_distance_pairs", "near_segment_csr", "near_segment_rows",
            "scenario_segments",
            "MAX_CELLS_PER_SCENARIO"]

@@ -50,3 +50,31 @@ def test_near_segment_rows_equal_dense_lists(dynamics):
             assert len(fast) == len(slow) == centres.shape[0]
             assert all(np.array_equal(f, s) for f, s in zip(fast, slow)), (sc.id, kind)
             assert sum(f.size for f in fast) > 0
+
+
+def test_observed_lists_are_the_nearest_midpoints_nearest_first():
+    cfg = SimConfig(dynamics="classic")
+    scs = scenes()
+    model = Model(scs, cfg)
+    h = model.host
+    mids = h["seg_mid"].astype(np.float64)
+    seg_first = np.concatenate([[0], np.cumsum([scenario_segments(sc, cfg.road_simplify_tol, cfg.road_max_segment)[0]
+                                                .shape[0] for sc in scs])])
+    checked = 0
+    for g in range(len(scs)):
+        first = int(h["grid_first"][g])
+        nx, ny = (int(v) for v in h["grid_dims"][g])
+        cell = float(h["grid_cell"][g])
+        own = np.arange(seg_first[g], seg_first[g + 1])
+        reach = cfg.road_radius + cell * np.sqrt(0.5)
+        for c in np.random.default_rng(g).choice(nx * ny, size=min(40, nx * ny), replace=False):
+            centre = h["grid_origin"][g].astype(np.float64) + (np.array([c % nx, c // nx]) + 0.5) * cell
+            items = h["obs_items"][h["obs_start"][first + c]:h["obs_start"][first + c + 1]]
+            d_all = np.sort(np.linalg.norm(mids[own] - centre, axis=1))
+            expected = d_all[:cfg.num_road]
+            expected = expected[expected <= reach]
+            got = np.linalg.norm(mids[items] - centre, axis=1)
+            assert np.all(np.isin(items, own))  # the scenario's own segments only
+            np.testing.assert_allclose(got, expected, atol=1e-4)  # the nearest, nearest first
+            checked += items.size
+    assert checked > 0
