@@ -269,6 +269,53 @@ def _join_csr(counts: list[np.ndarray], items: list[np.ndarray]) -> tuple[np.nda
 
 
 # ----------------------------------------------------------------------------- the model
+#: the host fields :meth:`Model._build_host` computes, in :class:`ModelHost`
+HOST_FIELDS: tuple[str, ...] = ("host", "slot_order", "slot_controllable", "max_half_diagonal", "max_log_speed",
+                                "edge_margin")
+
+
+@dataclass(frozen=True)
+class ModelHost:
+    """What building a :class:`Model` computes in NumPy (everything but the device upload),
+    for one pool and one :class:`SimConfig`: picklable, so another process can build it
+    while this one works (:func:`build_model_host`, :func:`offer_model_host`).
+
+    Attributes:
+        fingerprint: the pool's :attr:`Model.fingerprint`.
+        config: the SimConfig it was built for.
+        fields: :data:`HOST_FIELDS` -> value (``host`` arrays, slot orders, pool-wide bounds).
+    """
+
+    fingerprint: str
+    config: SimConfig
+    fields: dict
+
+
+#: host builds offered to the next Model of the same pool and config (each is used once)
+_OFFERED: dict[tuple[str, SimConfig], ModelHost] = {}
+
+
+def build_model_host(scenarios: Sequence[Scenario], config: SimConfig | None = None) -> ModelHost:
+    """Build a pool's :class:`ModelHost` without a device (NumPy only; safe in a worker
+    process). ``Model(scenarios, config)`` after :func:`offer_model_host` of it uses these
+    arrays instead of building its own (they are the same arrays)."""
+    model = Model.__new__(Model)
+    model.config = config or SimConfig()
+    model.scenarios = validate_scenarios(scenarios, needs="the pool")
+    model.fingerprint = Model._fingerprint(model.scenarios)
+    model._build_host()
+    return ModelHost(model.fingerprint, model.config, {k: getattr(model, k) for k in HOST_FIELDS})
+
+
+def offer_model_host(prebuilt: ModelHost) -> None:
+    """Let the next :class:`Model` of ``prebuilt``'s pool (same content, same order) and
+    config adopt it instead of building (once; a Model of any other pool or config ignores
+    it). Only the most recent offer per pool and config is kept."""
+    if not isinstance(prebuilt, ModelHost):
+        raise ValueError(f"prebuilt: expected a ModelHost, got {type(prebuilt).__name__}")
+    _OFFERED[(prebuilt.fingerprint, prebuilt.config)] = prebuilt
+
+
 @dataclass
 class GridInfo:
     origin: np.ndarray  # (2,)
@@ -298,7 +345,14 @@ class Model:
         self.config = config
         self.device = str(device)
         self.fingerprint = self._fingerprint(scenarios)
-        self._build_host()
+        prebuilt = _OFFERED.pop((self.fingerprint, config), None)
+        #: whether the host arrays came from an offered :class:`ModelHost`
+        self.prebuilt = prebuilt is not None
+        if prebuilt is not None:
+            for key, value in prebuilt.fields.items():
+                setattr(self, key, value)
+        else:
+            self._build_host()
         self.arrays = self._upload()
         self._replay_offroad()
 
@@ -588,7 +642,7 @@ class Model:
         }
 
 
-__all__ = ["Model", "ModelArrays", "simplify_polyline", "point_segment_distance", "rect_segment_distance",
+__all__ = ["Model", "ModelArrays", "ModelHost", "build_model_host", "offer_model_host", "simplify_polyline", "point_segment_distance", "rect_segment_distance",
            "rect_segment_distance_pairs", "near_segment_csr", "near_segment_rows",
            "scenario_segments",
            "MAX_CELLS_PER_SCENARIO"]

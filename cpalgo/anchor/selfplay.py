@@ -20,6 +20,11 @@ NumPy / Python RNG states) and on its index, a run resumed from a checkpoint com
 exactly what the uninterrupted run computes, and a killed piece loses at most the
 transitions since its last checkpoint. One learning-rate schedule runs over the whole
 budget (``CounterPlay(schedule_timesteps=...)``).
+
+Building a segment's env (drawing the procedural pool, then the model's road grids) takes
+about a minute on a CPU. A worker process (niced, started once per piece) builds the next
+segment's pool and model arrays (:func:`cpsim.model.build_model_host`) while this one trains;
+they are the same arrays, so the run computes the same either way.
 """
 
 from __future__ import annotations
@@ -164,24 +169,94 @@ def _set_rng_state(state: dict[str, Any]) -> None:
     random.setstate(state["python"])
 
 
-def _segment_pool(settings: AnchorRunSettings, segment: int, womd: Sequence[Any]) -> list[Any]:
+def _procedural_pool(settings: AnchorRunSettings, segment: int) -> list[Any]:
     from cpsim.scenario import train_pool
 
     # one seed per (run, segment): pools never repeat across segments or runs of other seeds
     pool_seed = int(np.random.SeedSequence([settings.seed, segment]).generate_state(1)[0])
-    return list(train_pool(settings.pool_size, pool_seed)) + list(womd)
+    return list(train_pool(settings.pool_size, pool_seed))
 
 
-def _build_env(recipe: Any, settings: AnchorRunSettings, segment: int, womd: Sequence[Any]) -> Any:
+def _segment_pool(settings: AnchorRunSettings, segment: int, womd: Sequence[Any]) -> list[Any]:
+    return _procedural_pool(settings, segment) + list(womd)
+
+
+def _build_env(recipe: Any, settings: AnchorRunSettings, segment: int, womd: Sequence[Any],
+               procedural: Sequence[Any] | None = None) -> Any:
+    """The segment's env; ``procedural``: its procedural pool when already drawn."""
     from stable_baselines3.common.vec_env import VecMonitor
 
     from cpsim import SelfPlayVecEnv
 
     kwargs = {k: v for k, v in recipe.env_kwargs.items() if k not in ("family", "num_scenarios", "womd_dir", "seed")}
     env_seed = int(np.random.SeedSequence([settings.seed, segment, 1]).generate_state(1)[0])
-    env = SelfPlayVecEnv(scenarios=_segment_pool(settings, segment, womd), num_worlds=recipe.num_worlds,
-                         seed=env_seed, **kwargs)
+    pool = (list(procedural) + list(womd)) if procedural is not None else _segment_pool(settings, segment, womd)
+    env = SelfPlayVecEnv(scenarios=pool, num_worlds=recipe.num_worlds, seed=env_seed, **kwargs)
     return VecMonitor(env)
+
+
+_WORKER_WOMD: dict[str, list[Any]] = {}
+
+
+def _worker_init() -> None:
+    os.nice(10)  # the trainer comes first; the worker fills the cores' idle time
+    th.set_num_threads(1)
+
+
+def _prepare_segment(settings: AnchorRunSettings, segment: int, config: Any) -> tuple[list[Any], Any]:
+    """In the worker: segment ``segment``'s procedural pool and its whole pool's
+    :class:`cpsim.model.ModelHost` under ``config``."""
+    from cpsim.model import build_model_host
+    from cpsim.scenario import load_dir
+
+    womd: list[Any] = []
+    if settings.womd_dir is not None:
+        if settings.womd_dir not in _WORKER_WOMD:
+            _WORKER_WOMD[settings.womd_dir] = list(load_dir(settings.womd_dir)[0])
+        womd = _WORKER_WOMD[settings.womd_dir]
+    procedural = _procedural_pool(settings, segment)
+    return procedural, build_model_host(procedural + womd, config)
+
+
+class _SegmentPreparer:
+    """Builds the next segment's pool and model arrays in one worker process."""
+
+    def __init__(self, settings: AnchorRunSettings, log: Callable[[str], None]) -> None:
+        self.settings = settings
+        self.log = log
+        self._workers: Any = None
+        self._job: Any = None
+        self._segment = -1
+
+    def start(self, segment: int, config: Any) -> None:
+        import multiprocessing
+
+        if self._workers is None:
+            self._workers = multiprocessing.get_context("spawn").Pool(1, initializer=_worker_init)
+        self._job = self._workers.apply_async(_prepare_segment, (self.settings, segment, config))
+        self._segment = segment
+
+    def take(self, segment: int) -> list[Any] | None:
+        """The prepared procedural pool of ``segment`` (its model arrays offered to the next
+        Model of that pool), or None when nothing was prepared for it or the worker failed."""
+        from cpsim.model import offer_model_host
+
+        job, self._job = self._job, None
+        if job is None or self._segment != segment:
+            return None
+        try:
+            procedural, host = job.get()
+        except Exception as exc:  # the segment is then built here, as without a worker
+            self.log(f"segment {segment}: preparing in the worker failed ({type(exc).__name__}: {exc}); building here")
+            return None
+        offer_model_host(host)
+        return procedural
+
+    def close(self) -> None:
+        if self._workers is not None:
+            self._workers.terminate()
+            self._workers.join()
+            self._workers = None
 
 
 def _held_out(settings: AnchorRunSettings) -> list[Any]:
@@ -367,18 +442,20 @@ def _apply_changes(model: Any, changes: dict[str, Any]) -> None:
 
 def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | None = None, *,
                      resume: bool = False, stop_after_s: float | None = None, command: str | None = None,
-                     changes: Sequence[str] = (), log: Callable[[str], None] = print) -> Any:
+                     changes: Sequence[str] = (), prepare_ahead: bool = True,
+                     log: Callable[[str], None] = print) -> Any:
     """Start (``settings`` given) or resume (``resume=True``) the run in ``run_dir``.
 
     ``changes`` (resume only): ``KEY=VALUE`` items of :data:`CHANGEABLE` PPO settings that
     hold from this piece on (recorded in ``run.json``; see :func:`parse_changes`).
+    ``prepare_ahead``: build each next segment's pool and model arrays in a worker process
+    during training (same results, less wall time).
 
     Runs segments until the budget is spent, ``stop_after_s`` seconds of this piece have
     passed (checked after each segment), or a ``STOP`` file appears in the run folder.
     Returns the model. Raises ``ValueError`` naming the folder when it is not a run folder
     (resume) or already holds one (start).
     """
-    from cpalgo.checkpoint import save_model_atomic
     from cpalgo.counterplay.algorithm import CounterPlay
     from cpalgo.recipes import load_recipe
     from cpsim.atomic import atomic_path
@@ -436,10 +513,31 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         state = {"segment": 0, "wall_s": 0.0, "rows": []}
         model = None
 
+    preparer = _SegmentPreparer(settings, log) if prepare_ahead else None
+    try:
+        return _run_segments(run_dir, settings, recipe, model, state, womd, tasks, preparer, stop_after_s, log)
+    finally:
+        if preparer is not None:
+            preparer.close()
+
+
+def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model: Any, state: dict[str, Any],
+                  womd: list[Any], tasks: list[Any], preparer: _SegmentPreparer | None,
+                  stop_after_s: float | None, log: Callable[[str], None]) -> Any:
+    """The segment loop of :func:`train_anchor_run`."""
+    from cpalgo.checkpoint import save_model_atomic
+
     start = time.perf_counter()
     while (model.num_timesteps if model is not None else 0) < settings.timesteps:
         segment = int(state["segment"])
-        env = _build_env(recipe, settings, segment, womd)
+        t_build = time.perf_counter()
+        procedural = preparer.take(segment) if preparer is not None else None
+        env = _build_env(recipe, settings, segment, womd, procedural)
+        build_s = time.perf_counter() - t_build
+        prebuilt = bool(getattr(env.venv.sim.model, "prebuilt", False))
+        next_target = (segment + 1) * settings.segment_timesteps
+        if preparer is not None and next_target < settings.timesteps:
+            preparer.start(segment + 1, env.venv.sim.config)
         if model is None:
             model = _new_model(recipe, settings, env)
         else:
@@ -461,7 +559,9 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         for o in OUTCOMES:
             row[f"train_{o}"] = stats.outcomes[o] / episodes if episodes else float("nan")
         row.update(stats.update_means())
+        t_eval = time.perf_counter()
         row.update(_evaluate(model, recipe, tasks))
+        eval_s = time.perf_counter() - t_eval
         state["rows"] = list(state["rows"]) + [row]
         state["segment"] = segment + 1
         state["wall_s"] = row["wall_s"]
@@ -477,7 +577,8 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             f" /s), held-out goal aggr/normal/caut "
             f"{row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / {row['cautious_goal']:.1%}, "
             f"normal collision {row['normal_collision']:.1%} off-road {row['normal_offroad']:.1%} "
-            f"timeout {row['normal_timeout']:.1%}, entropy {row['normal_entropy']:.2f} (trained {row['entropy']:.2f}), approx_kl {row['approx_kl']:.4f}, clip {row['clip_fraction']:.3f}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
+            f"timeout {row['normal_timeout']:.1%}, env {build_s:.0f} s{' (prepared ahead)' if prebuilt else ''}, "
+            f"evaluation {eval_s:.0f} s, entropy {row['normal_entropy']:.2f} (trained {row['entropy']:.2f}), approx_kl {row['approx_kl']:.4f}, clip {row['clip_fraction']:.3f}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
         if (run_dir / STOP_FILE).exists():
             log(f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}")
             break

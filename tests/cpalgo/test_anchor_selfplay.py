@@ -60,7 +60,11 @@ def _quiet(_msg: str) -> None:
 
 
 def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, recipe: str, monkeypatch):
-    whole = train_anchor_run(tmp_path / "whole", _settings(recipe), log=_quiet)
+    # the uninterrupted run builds each next segment's env in a worker process, the pieces
+    # build them in place: same pools, same arrays, same run
+    messages: list[str] = []
+    whole = train_anchor_run(tmp_path / "whole", _settings(recipe), log=messages.append, prepare_ahead=True)
+    assert sum("(prepared ahead)" in m for m in messages) == 2, messages  # segments 1 and 2
     rows = read_curve(tmp_path / "whole")
     assert [int(r["segment"]) for r in rows] == list(range(len(rows))) and len(rows) >= 3
     assert rows[-1]["timesteps"] >= 300 > rows[-2]["timesteps"]
@@ -72,7 +76,7 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
         assert '"_last_obs": null' in archive.read("data").decode()  # not needed to resume
 
     # piece 1 stops after its first segment ...
-    train_anchor_run(tmp_path / "pieces", _settings(recipe), stop_after_s=0.0, log=_quiet)
+    train_anchor_run(tmp_path / "pieces", _settings(recipe), stop_after_s=0.0, log=_quiet, prepare_ahead=False)
     assert len(read_curve(tmp_path / "pieces")) == 1
     # ... piece 2 is killed after learning its first segment, before the checkpoint
     calls = {"n": 0}
@@ -85,11 +89,11 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
     monkeypatch.setattr(selfplay, "_evaluate", killed)
     kept = _weights(tmp_path / "pieces")
     with pytest.raises(KeyboardInterrupt):
-        train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet)
+        train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet, prepare_ahead=False)
     assert calls["n"] == 1 and _same(_weights(tmp_path / "pieces"), kept)  # the last checkpoint survives
     monkeypatch.setattr(selfplay, "_evaluate", real_evaluate)
     # ... piece 3 resumes from the last checkpoint and finishes
-    resumed = train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet)
+    resumed = train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet, prepare_ahead=False)
     assert resumed.num_timesteps == whole.num_timesteps
     assert _same(_weights(tmp_path / "pieces"), _weights(tmp_path / "whole"))
     opt_a, opt_b = _optimizer(tmp_path / "pieces"), _optimizer(tmp_path / "whole")
@@ -123,8 +127,8 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     import json
 
     run = tmp_path / "run"
-    train_anchor_run(run, _settings(recipe), stop_after_s=0.0, log=_quiet)
-    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet,
+    train_anchor_run(run, _settings(recipe), stop_after_s=0.0, log=_quiet, prepare_ahead=False)
+    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, prepare_ahead=False,
                              changes=["ent_coef=0.03", "learning_rate=cosine(2e-3)", "n_epochs=2"])
     assert model.ent_coef == 0.03 and model.n_epochs == 2
     rows = read_curve(run)
@@ -138,7 +142,7 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     assert doc["changes"] == [{"segment": 1, "timesteps": int(rows[0]["timesteps"]),
                                "set": {"ent_coef": 0.03, "learning_rate": "cosine(2e-3)", "n_epochs": 2}}]
     # the checkpoint carries the change into the next piece
-    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet)
+    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, prepare_ahead=False)
     assert model.ent_coef == 0.03 and model.n_epochs == 2
 
     for bad, match in ((["gamma=0.9"], "'gamma' cannot be changed"), (["ent_coef"], "KEY=VALUE"),

@@ -78,3 +78,26 @@ def test_observed_lists_are_the_nearest_midpoints_nearest_first():
             np.testing.assert_allclose(got, expected, atol=1e-4)  # the nearest, nearest first
             checked += items.size
     assert checked > 0
+
+
+def test_an_offered_host_build_is_adopted_once_by_its_pool_and_config():
+    import pickle
+
+    from cpsim.model import build_model_host, offer_model_host
+
+    scs = list(pool(3, 1))
+    cfg = SimConfig(dynamics="classic")
+    prebuilt = pickle.loads(pickle.dumps(build_model_host(scs, cfg)))  # as a worker process returns it
+    offer_model_host(prebuilt)
+    other = Model(scs, SimConfig(dynamics="jerk"))  # another config: ignores the offer
+    assert not other.prebuilt
+    adopted = Model(list(scs), cfg)
+    assert adopted.prebuilt
+    built = Model(scs, cfg)  # used once: the next Model builds its own
+    assert not built.prebuilt
+    assert adopted.host.keys() == built.host.keys()
+    assert all(np.array_equal(adopted.host[k], built.host[k]) for k in built.host)
+    assert adopted.edge_margin == built.edge_margin and all(
+        np.array_equal(a, b) for a, b in zip(adopted.slot_order, built.slot_order))
+    with pytest.raises(ValueError, match="prebuilt: expected a ModelHost"):
+        offer_model_host(built.host)
