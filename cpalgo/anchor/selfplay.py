@@ -22,9 +22,13 @@ transitions since its last checkpoint. One learning-rate schedule runs over the 
 budget (``CounterPlay(schedule_timesteps=...)``).
 
 Building a segment's env (drawing the procedural pool, then the model's road grids) takes
-about a minute on a CPU. A worker process (niced, started once per piece) builds the next
-segment's pool and model arrays (:func:`cpsim.model.build_model_host`) while this one trains;
-they are the same arrays, so the run computes the same either way.
+about a minute on a CPU, and the held-out evaluation half a minute. A worker process (niced,
+started once per piece) does both beside the training: it builds the next segment's pool and
+model arrays (:func:`cpsim.model.build_model_host`; the same arrays) and evaluates each saved
+checkpoint (the evaluation draws no random numbers), so the run computes the same either way.
+A checkpoint is written as soon as its segment is trained; its curve row gets the held-out
+columns when the worker returns them (before the next checkpoint, or at the end of the piece,
+which then rewrites the checkpoint; a resumed piece first evaluates a row that lacks them).
 """
 
 from __future__ import annotations
@@ -198,6 +202,21 @@ def _build_env(recipe: Any, settings: AnchorRunSettings, segment: int, womd: Seq
 _WORKER_WOMD: dict[str, list[Any]] = {}
 
 
+_WORKER_TASKS: dict[tuple[int, int], list[Any]] = {}
+
+
+def _evaluate_checkpoint(path: str, recipe_path: str, settings: AnchorRunSettings) -> dict[str, float]:
+    """In the worker: the held-out columns of the checkpoint at ``path``."""
+    from cpalgo.counterplay.algorithm import CounterPlay
+    from cpalgo.recipes import load_recipe
+
+    key = (settings.eval_tasks, HELD_OUT_SEED)
+    if key not in _WORKER_TASKS:
+        _WORKER_TASKS[key] = _held_out(settings)
+    model = CounterPlay.load(path, device="cpu")
+    return _evaluate(model, load_recipe(recipe_path), _WORKER_TASKS[key])
+
+
 def _worker_init() -> None:
     os.nice(10)  # the trainer comes first; the worker fills the cores' idle time
     th.set_num_threads(1)
@@ -218,22 +237,28 @@ def _prepare_segment(settings: AnchorRunSettings, segment: int, config: Any) -> 
     return procedural, build_model_host(procedural + womd, config)
 
 
-class _SegmentPreparer:
-    """Builds the next segment's pool and model arrays in one worker process."""
+class _SegmentWorker:
+    """One worker process beside the trainer: builds the next segment's pool and model
+    arrays, and evaluates saved checkpoints (jobs run in submission order)."""
 
     def __init__(self, settings: AnchorRunSettings, log: Callable[[str], None]) -> None:
         self.settings = settings
         self.log = log
         self._workers: Any = None
-        self._job: Any = None
+        self._prepared: Any = None
         self._segment = -1
+        self._evaluation: Any = None
 
-    def start(self, segment: int, config: Any) -> None:
+    def _submit(self, fn: Callable[..., Any], *args: Any) -> Any:
         import multiprocessing
 
         if self._workers is None:
             self._workers = multiprocessing.get_context("spawn").Pool(1, initializer=_worker_init)
-        self._job = self._workers.apply_async(_prepare_segment, (self.settings, segment, config))
+        return self._workers.apply_async(fn, args)
+
+    def prepare(self, segment: int, config: Any) -> None:
+        """Start building segment ``segment``'s pool and model arrays under ``config``."""
+        self._prepared = self._submit(_prepare_segment, self.settings, segment, config)
         self._segment = segment
 
     def take(self, segment: int) -> list[Any] | None:
@@ -241,7 +266,7 @@ class _SegmentPreparer:
         Model of that pool), or None when nothing was prepared for it or the worker failed."""
         from cpsim.model import offer_model_host
 
-        job, self._job = self._job, None
+        job, self._prepared = self._prepared, None
         if job is None or self._segment != segment:
             return None
         try:
@@ -251,6 +276,21 @@ class _SegmentPreparer:
             return None
         offer_model_host(host)
         return procedural
+
+    def evaluate(self, checkpoint: Path, recipe_path: Path) -> None:
+        """Start evaluating the checkpoint file (it must stay unchanged until :meth:`evaluation`)."""
+        self._evaluation = self._submit(_evaluate_checkpoint, str(checkpoint), str(recipe_path), self.settings)
+
+    def evaluation(self) -> dict[str, float] | None:
+        """Wait for the pending evaluation: its columns, or None (none pending, or it failed)."""
+        job, self._evaluation = self._evaluation, None
+        if job is None:
+            return None
+        try:
+            return job.get()
+        except Exception as exc:
+            self.log(f"evaluating in the worker failed ({type(exc).__name__}: {exc}); evaluating here")
+            return None
 
     def close(self) -> None:
         if self._workers is not None:
@@ -442,14 +482,14 @@ def _apply_changes(model: Any, changes: dict[str, Any]) -> None:
 
 def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | None = None, *,
                      resume: bool = False, stop_after_s: float | None = None, command: str | None = None,
-                     changes: Sequence[str] = (), prepare_ahead: bool = True,
+                     changes: Sequence[str] = (), worker: bool = True,
                      log: Callable[[str], None] = print) -> Any:
     """Start (``settings`` given) or resume (``resume=True``) the run in ``run_dir``.
 
     ``changes`` (resume only): ``KEY=VALUE`` items of :data:`CHANGEABLE` PPO settings that
     hold from this piece on (recorded in ``run.json``; see :func:`parse_changes`).
-    ``prepare_ahead``: build each next segment's pool and model arrays in a worker process
-    during training (same results, less wall time).
+    ``worker``: build each next segment's env and evaluate each finished segment in a
+    worker process beside the training (same results, less wall time).
 
     Runs segments until the budget is spent, ``stop_after_s`` seconds of this piece have
     passed (checked after each segment), or a ``STOP`` file appears in the run folder.
@@ -513,31 +553,71 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         state = {"segment": 0, "wall_s": 0.0, "rows": []}
         model = None
 
-    preparer = _SegmentPreparer(settings, log) if prepare_ahead else None
+    helper = _SegmentWorker(settings, log) if worker else None
     try:
-        return _run_segments(run_dir, settings, recipe, model, state, womd, tasks, preparer, stop_after_s, log)
+        return _run_segments(run_dir, settings, recipe, model, state, womd, tasks, helper, stop_after_s, log)
     finally:
-        if preparer is not None:
-            preparer.close()
+        if helper is not None:
+            helper.close()
+
+
+def _held_out_line(row: dict[str, Any]) -> str:
+    return (f"held-out goal aggr/normal/caut {row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / "
+            f"{row['cautious_goal']:.1%}, normal collision {row['normal_collision']:.1%} off-road "
+            f"{row['normal_offroad']:.1%} timeout {row['normal_timeout']:.1%}, first-decision entropy "
+            f"{row['normal_entropy']:.2f}, value falls {row['value_falls']:.0%} of {row['value_failures']} failures")
+
+
+def _save(model: Any, run_dir: Path, state: dict[str, Any]) -> None:
+    from cpalgo.checkpoint import save_model_atomic
+
+    model.resume_state = state
+    # the next segment starts from a reset: the last observations (5.7 MB at 2,048 slots,
+    # which SB3 would save) are not needed to continue
+    model._last_obs = model._last_original_obs = None
+    save_model_atomic(model, run_dir / CHECKPOINT_FILE)
+    _write_curve(run_dir, state["rows"])
 
 
 def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model: Any, state: dict[str, Any],
-                  womd: list[Any], tasks: list[Any], preparer: _SegmentPreparer | None,
+                  womd: list[Any], tasks: list[Any], helper: _SegmentWorker | None,
                   stop_after_s: float | None, log: Callable[[str], None]) -> Any:
     """The segment loop of :func:`train_anchor_run`."""
-    from cpalgo.checkpoint import save_model_atomic
+    state["rows"] = [dict(r) for r in state["rows"]]
+    pending = False  # the last row waits for the worker's evaluation
+
+    def complete_last_row(evaluated: dict[str, float] | None, trained_on: bool = False) -> None:
+        """Add the held-out columns to the last row: ``evaluated`` (the worker's), else
+        measured here on the last checkpoint (``trained_on``: the model has trained past it)."""
+        from cpalgo.counterplay.algorithm import CounterPlay
+
+        row = state["rows"][-1]
+        t_eval = time.perf_counter()
+        where = "evaluated by the worker"
+        if evaluated is None:
+            where = "evaluated here"
+            saved = CounterPlay.load(run_dir / CHECKPOINT_FILE, device="cpu") if trained_on else model
+            evaluated = _evaluate(saved, recipe, tasks)
+        row.update(evaluated)
+        where += f", waited {time.perf_counter() - t_eval:.0f} s"
+        log(f"segment {int(row['segment'])} ({where}): {_held_out_line(row)}")
+
+    if model is not None and state["rows"] and "normal_goal" not in state["rows"][-1]:
+        # the piece that trained the last segment ended before its evaluation came back
+        complete_last_row(None)
+        _save(model, run_dir, state)
 
     start = time.perf_counter()
     while (model.num_timesteps if model is not None else 0) < settings.timesteps:
         segment = int(state["segment"])
         t_build = time.perf_counter()
-        procedural = preparer.take(segment) if preparer is not None else None
+        procedural = helper.take(segment) if helper is not None else None
         env = _build_env(recipe, settings, segment, womd, procedural)
         build_s = time.perf_counter() - t_build
         prebuilt = bool(getattr(env.venv.sim.model, "prebuilt", False))
         next_target = (segment + 1) * settings.segment_timesteps
-        if preparer is not None and next_target < settings.timesteps:
-            preparer.start(segment + 1, env.venv.sim.config)
+        if helper is not None and next_target < settings.timesteps:
+            helper.prepare(segment + 1, env.venv.sim.config)
         if model is None:
             model = _new_model(recipe, settings, env)
         else:
@@ -550,6 +630,9 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         stats.read_update(model.logger.name_to_value)  # the segment's last update: no rollout end follows it
         env.close()
         train_wall = time.perf_counter() - t0
+        if pending:  # the previous segment's evaluation ran during this one's training
+            complete_last_row(helper.evaluation(), trained_on=True)
+            pending = False
         row: dict[str, Any] = {"segment": segment, "timesteps": int(model.num_timesteps),
                                "wall_s": round(float(state["wall_s"]) + train_wall, 1),
                                "learning_rate": float(model.policy.optimizer.param_groups[0]["lr"]),
@@ -559,30 +642,35 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         for o in OUTCOMES:
             row[f"train_{o}"] = stats.outcomes[o] / episodes if episodes else float("nan")
         row.update(stats.update_means())
-        t_eval = time.perf_counter()
-        row.update(_evaluate(model, recipe, tasks))
-        eval_s = time.perf_counter() - t_eval
-        state["rows"] = list(state["rows"]) + [row]
+        previous = state["rows"][-1]["timesteps"] if state["rows"] else 0
+        state["rows"].append(row)
         state["segment"] = segment + 1
         state["wall_s"] = row["wall_s"]
         state["rng"] = _rng_state()
-        model.resume_state = state
-        # the next segment starts from a reset: the last observations (5.7 MB at 2,048 slots,
-        # which SB3 would save) are not needed to continue
-        model._last_obs = model._last_original_obs = None
-        save_model_atomic(model, run_dir / CHECKPOINT_FILE)
-        _write_curve(run_dir, state["rows"])
         log(f"segment {segment}: {model.num_timesteps:,} transitions, {train_wall:.0f} s "
-            f"({(row['timesteps'] - (state['rows'][-2]['timesteps'] if len(state['rows']) > 1 else 0)) / train_wall:,.0f}"
-            f" /s), held-out goal aggr/normal/caut "
-            f"{row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / {row['cautious_goal']:.1%}, "
-            f"normal collision {row['normal_collision']:.1%} off-road {row['normal_offroad']:.1%} "
-            f"timeout {row['normal_timeout']:.1%}, env {build_s:.0f} s{' (prepared ahead)' if prebuilt else ''}, "
-            f"evaluation {eval_s:.0f} s, entropy {row['normal_entropy']:.2f} (trained {row['entropy']:.2f}), approx_kl {row['approx_kl']:.4f}, clip {row['clip_fraction']:.3f}, train goal {row['train_goal']:.1%}, EV {row['explained_variance']:.2f}")
+            f"({(row['timesteps'] - previous) / train_wall:,.0f} /s), env {build_s:.0f} s"
+            f"{' (prepared ahead)' if prebuilt else ''}, approx_kl {row['approx_kl']:.4f}, clip "
+            f"{row['clip_fraction']:.3f}, entropy {row['entropy']:.2f}, train goal / collision / off-road "
+            f"{row['train_goal']:.1%} / {row['train_collision']:.1%} / {row['train_offroad']:.1%}, "
+            f"EV {row['explained_variance']:.2f}")
+        if helper is None:
+            complete_last_row(None)
+        _save(model, run_dir, state)
+        if helper is not None:
+            helper.evaluate(run_dir / CHECKPOINT_FILE, run_dir / "recipe.yml")
+            pending = True
+        stop = None
         if (run_dir / STOP_FILE).exists():
-            log(f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}")
+            stop = f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}"
+        elif stop_after_s is not None and time.perf_counter() - start >= stop_after_s:
+            stop = f"stopping after {time.perf_counter() - start:.0f} s of this piece (--stop-after)"
+        if stop is not None:
             break
-        if stop_after_s is not None and time.perf_counter() - start >= stop_after_s:
-            log(f"stopping after {time.perf_counter() - start:.0f} s of this piece (--stop-after)")
-            break
+    else:
+        stop = None
+    if pending:  # the piece ends: wait for the last evaluation and keep it in the checkpoint
+        complete_last_row(helper.evaluation())
+        _save(model, run_dir, state)
+    if stop is not None:
+        log(stop)
     return model

@@ -60,10 +60,10 @@ def _quiet(_msg: str) -> None:
 
 
 def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, recipe: str, monkeypatch):
-    # the uninterrupted run builds each next segment's env in a worker process, the pieces
-    # build them in place: same pools, same arrays, same run
+    # the uninterrupted run builds each next segment's env and evaluates each checkpoint in a
+    # worker process, the pieces do both in place: same pools, same arrays, same run, same curve
     messages: list[str] = []
-    whole = train_anchor_run(tmp_path / "whole", _settings(recipe), log=messages.append, prepare_ahead=True)
+    whole = train_anchor_run(tmp_path / "whole", _settings(recipe), log=messages.append, worker=True)
     assert sum("(prepared ahead)" in m for m in messages) == 2, messages  # segments 1 and 2
     rows = read_curve(tmp_path / "whole")
     assert [int(r["segment"]) for r in rows] == list(range(len(rows))) and len(rows) >= 3
@@ -76,7 +76,7 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
         assert '"_last_obs": null' in archive.read("data").decode()  # not needed to resume
 
     # piece 1 stops after its first segment ...
-    train_anchor_run(tmp_path / "pieces", _settings(recipe), stop_after_s=0.0, log=_quiet, prepare_ahead=False)
+    train_anchor_run(tmp_path / "pieces", _settings(recipe), stop_after_s=0.0, log=_quiet, worker=False)
     assert len(read_curve(tmp_path / "pieces")) == 1
     # ... piece 2 is killed after learning its first segment, before the checkpoint
     calls = {"n": 0}
@@ -89,11 +89,11 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
     monkeypatch.setattr(selfplay, "_evaluate", killed)
     kept = _weights(tmp_path / "pieces")
     with pytest.raises(KeyboardInterrupt):
-        train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet, prepare_ahead=False)
+        train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet, worker=False)
     assert calls["n"] == 1 and _same(_weights(tmp_path / "pieces"), kept)  # the last checkpoint survives
     monkeypatch.setattr(selfplay, "_evaluate", real_evaluate)
     # ... piece 3 resumes from the last checkpoint and finishes
-    resumed = train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet, prepare_ahead=False)
+    resumed = train_anchor_run(tmp_path / "pieces", resume=True, log=_quiet, worker=False)
     assert resumed.num_timesteps == whole.num_timesteps
     assert _same(_weights(tmp_path / "pieces"), _weights(tmp_path / "whole"))
     opt_a, opt_b = _optimizer(tmp_path / "pieces"), _optimizer(tmp_path / "whole")
@@ -127,8 +127,8 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     import json
 
     run = tmp_path / "run"
-    train_anchor_run(run, _settings(recipe), stop_after_s=0.0, log=_quiet, prepare_ahead=False)
-    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, prepare_ahead=False,
+    train_anchor_run(run, _settings(recipe), stop_after_s=0.0, log=_quiet, worker=False)
+    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, worker=False,
                              changes=["ent_coef=0.03", "learning_rate=cosine(2e-3)", "n_epochs=2"])
     assert model.ent_coef == 0.03 and model.n_epochs == 2
     rows = read_curve(run)
@@ -142,7 +142,7 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     assert doc["changes"] == [{"segment": 1, "timesteps": int(rows[0]["timesteps"]),
                                "set": {"ent_coef": 0.03, "learning_rate": "cosine(2e-3)", "n_epochs": 2}}]
     # the checkpoint carries the change into the next piece
-    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, prepare_ahead=False)
+    model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, worker=False)
     assert model.ent_coef == 0.03 and model.n_epochs == 2
 
     for bad, match in ((["gamma=0.9"], "'gamma' cannot be changed"), (["ent_coef"], "KEY=VALUE"),
@@ -153,3 +153,24 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     with pytest.raises(ValueError, match="only in a resumed run"):
         train_anchor_run(tmp_path / "new", _settings(recipe), log=_quiet, changes=["ent_coef=0.1"])
     assert json.loads((run / "run.json").read_text())["changes"] == doc["changes"]  # nothing half-written
+
+
+def test_a_piece_killed_before_its_last_evaluation_is_completed_by_the_next(tmp_path: Path, recipe: str, monkeypatch):
+    whole = tmp_path / "whole"
+    train_anchor_run(whole, _settings(recipe), log=_quiet, worker=False)
+
+    def killed(self):
+        raise KeyboardInterrupt("killed while the worker evaluates")
+
+    run = tmp_path / "run"
+    monkeypatch.setattr(selfplay._SegmentWorker, "evaluation", killed)
+    with pytest.raises(KeyboardInterrupt):
+        train_anchor_run(run, _settings(recipe), stop_after_s=0.0, log=_quiet, worker=True)
+    rows = read_curve(run)
+    assert len(rows) == 1 and "normal_goal" not in rows[0]  # trained and saved, not evaluated
+    monkeypatch.undo()
+    messages: list[str] = []
+    train_anchor_run(run, resume=True, log=messages.append, worker=False)
+    assert messages[1].startswith("segment 0 (evaluated here")
+    np.testing.assert_equal([{k: v for k, v in r.items() if k != "wall_s"} for r in read_curve(run)],
+                            [{k: v for k, v in r.items() if k != "wall_s"} for r in read_curve(whole)])
