@@ -9,7 +9,8 @@ Example::
 checkpoints aggregates them as seeds: mean and std). ``PATH`` may also be a built-in
 controller: ``expert`` (log replay) or ``idm``, or an imitation teacher of
 ``cpsim.expert`` (``reactive``, ``tracking``) driving the ego under the deployment
-condition. Everything is validated before the first simulator step; on a bad input the
+condition. The simulator takes the dynamics of the learned policies (their action sets:
+12 jerk, 91 classic; every checkpoint and ``--dynamics`` must agree). Everything is validated before the first simulator step; on a bad input the
 command exits with status 2 and a message, and no result folder is written. The result folder is written atomically at the end.
 """
 
@@ -83,6 +84,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ppo-policy", default=None,
                    help="self-play PPO co-player checkpoint for 'selfplay' (default zoo/ppo_traffic.zip; "
                         "without it the --traffic-policy under p_train conditions)")
+    p.add_argument("--dynamics", choices=("jerk", "classic"), default=None,
+                   help="simulator dynamics (default: that of the learned policies, read from their action "
+                        "sets: 12 actions jerk, 91 classic; every --policy, --traffic-policy and --ppo-policy "
+                        "checkpoint must agree, and with this option when given)")
     p.add_argument("--reference", default=None, help="label of the outcome analysis' reference (default first)")
     p.add_argument("--out", required=True, help="results folder (replaced atomically)")
     p.add_argument("--seed", type=int, default=0)
@@ -124,12 +129,19 @@ def run(argv: Sequence[str] | None = None) -> dict:
     labels = [e.label for e in egos]
     if args.reference is not None and args.reference not in labels:
         raise ValueError(f"--reference: {args.reference!r} is not one of the policy labels {labels}")
+    # the learned policies choose the simulator's dynamics (their action sets); all must agree
+    traffic = None if args.traffic_policy is None else R.load_model(args.traffic_policy, "--traffic-policy")
+    ppo = None if args.ppo_policy is None or "selfplay" not in regimes else R.load_model(args.ppo_policy,
+                                                                                       "--ppo-policy")
+    named = [(f"--policy {e.checkpoint or e.label!r}", e) for e in egos]
+    R.resolve_dynamics([*named, ("--traffic-policy", traffic), ("--ppo-policy", ppo)], args.dynamics, "--dynamics")
     tasks = R.make_tasks(args.pool, args.split, args.n, seed=args.seed, pool_size=args.pool_size)
     cfg = R.EvalConfig(deploy_condition=deploy, max_worlds=args.max_worlds, max_agents=args.max_agents,
                        seed=args.seed, device=args.device, progress=not args.no_progress,
                        coplayers=args.coplayers)
-    ev = R.Evaluator(tasks, regimes, traffic_policy=args.traffic_policy, bc_policy=args.bc_policy,
-                     ppo_policy=args.ppo_policy, config=cfg)
+    ev = R.Evaluator(tasks, regimes, traffic_policy=traffic, bc_policy=args.bc_policy,
+                     ppo_policy=ppo if ppo is not None else args.ppo_policy, config=cfg,
+                     policies=dict(named), dynamics=args.dynamics)
     for e in egos:  # observation layout of every checkpoint, before any run
         if e.controller == R._POLICY:
             R.check_obs_size(e, ev.obs_size, f"--policy {e.checkpoint or e.label!r}")
@@ -143,7 +155,10 @@ def run(argv: Sequence[str] | None = None) -> dict:
         "pool": str(args.pool), "split": args.split, "n": args.n, "seed": args.seed,
         "deploy": deploy if isinstance(deploy, str) else list(deploy), "regimes": regimes,
         "traffic_policy": args.traffic_policy, "bc_policy": args.bc_policy, "coplayers": args.coplayers,
-        "ppo_policy": args.ppo_policy or (str(R.DEFAULT_PPO_PATH) if R.DEFAULT_PPO_PATH.is_file() else None),
+        "ppo_policy": args.ppo_policy or (str(R.DEFAULT_PPO_PATH) if ev.ppo_policy is not None else None),
+        "dynamics": ev.dynamics,
+        "dynamics_from": {None: "default", "dynamics": "--dynamics"}.get(ev.dynamics_source, ev.dynamics_source),
+        **({"notes": dict(ev.notes)} if ev.notes else {}),
         "policies": [{"label": r.label, "checkpoint": r.checkpoint, **r.meta} for r in results],
     }
     scenarios = {t.scenario_id: t.scenario for t in tasks}

@@ -27,7 +27,11 @@ def held_out_tasks(n: int) -> tuple:
 
 def held_out_outcomes(model: Any, n_tasks: int, max_agents: int, condition: Any = "normal") -> Any:
     """Self-play outcome rates of ``model`` on the first ``n_tasks`` held-out tasks, every
-    controllable agent under ``condition`` (:func:`cpalgo.anchor.outcomes.selfplay_outcomes`)."""
+    controllable agent under ``condition`` (:func:`cpalgo.anchor.outcomes.selfplay_outcomes`),
+    in the dynamics the model acts in (its action set, :func:`cpalgo.evaluate.runner.policy_dynamics`)."""
     from cpalgo.anchor.outcomes import selfplay_outcomes
+    from cpalgo.evaluate.runner import policy_dynamics
 
-    return selfplay_outcomes(model, held_out_tasks(n_tasks), condition=condition, max_agents=max_agents)
+    dynamics = policy_dynamics(model, "model")
+    return selfplay_outcomes(model, held_out_tasks(n_tasks), condition=condition, max_agents=max_agents,
+                             config=None if dynamics is None else {"dynamics": dynamics})

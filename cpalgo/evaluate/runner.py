@@ -30,12 +30,17 @@ mix            ``traffic_policy``, the three profiles rotating over the co-playe
 ============== ===================================================================
 
 ``static`` (co-players stand still) is accepted as an extra regime.
+
+The simulator runs in the dynamics model (``jerk`` or ``classic``) of the learned policies
+given, read from their action sets (:func:`policy_dynamics`); they must agree
+(:class:`Evaluator`, docs/evaluation.md "Dynamics").
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -376,6 +381,146 @@ def as_ego_policy(policy: Any, label: str | None = None) -> EgoPolicy:
                      f"got {type(policy).__name__}")
 
 
+# ============================================================================ dynamics
+def _checkpoint_num_actions(path: Path) -> int | None:
+    """The discrete action count an SB3 zip records in its ``data`` (None: not recorded)."""
+    import json
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = json.loads(z.read("data"))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        return None
+    space = data.get("action_space") if isinstance(data, dict) else None
+    n = space.get("n") if isinstance(space, dict) else None
+    return int(n) if isinstance(n, (int, np.integer)) and not isinstance(n, bool) else None
+
+
+def policy_dynamics(model: Any, argument: str = "policy") -> str | None:
+    """The dynamics model (``jerk`` or ``classic``) a learned policy acts in, read from the
+    size of its discrete action set (:func:`cpsim.config.num_actions`: 12 jerk, 91 classic).
+
+    ``model``: an SB3 model (its ``action_space``), an :class:`EgoPolicy`, a BC model, or a
+    checkpoint path (an SB3 zip is read without loading it). None when the policy works
+    under either dynamics or does not say: built-in controllers and imitation teachers
+    (they read the simulator's dynamics), callables, a BC model with the ``targets`` head
+    (converted to the simulator's action set, :func:`adapt_bc_policy`). Raises
+    ``ValueError`` naming ``argument`` when the action count matches no dynamics model.
+    """
+    from cpsim.config import DYNAMICS_MODELS, num_actions
+
+    if isinstance(model, EgoPolicy):
+        if model.controller != _POLICY or not isinstance(model, ModelEgo):
+            return None
+        model = model.model
+    n: Any = None
+    if isinstance(model, (str, os.PathLike)):
+        s = str(model)
+        if s.lower() in EGO_CONTROLLERS:
+            return None
+        from cpsim.expert import EXPERTS
+
+        if s.lower() in EXPERTS:
+            return None
+        p = Path(resolve_path(s))
+        n = _checkpoint_num_actions(p) if p.suffix == ".zip" else None
+        if n is None:
+            model = load_model(p, argument)
+    if n is None:
+        from cpalgo.traffic.bc import BCPolicy
+
+        if isinstance(model, BCPolicy):
+            if model.head == "targets":
+                return None
+            n = model.num_actions
+        else:
+            n = getattr(getattr(model, "action_space", None), "n", None)
+    if n is None:
+        return None
+    table = {num_actions(d): d for d in sorted(DYNAMICS_MODELS)}
+    if int(n) not in table:
+        known = ", ".join(f"{k} ({d})" for k, d in table.items())
+        raise ValueError(f"{argument}: {int(n)} discrete actions match no dynamics model; known: {known}")
+    return table[int(n)]
+
+
+def _describe(dynamics: str) -> str:
+    from cpsim.config import num_actions
+
+    return f"{dynamics} dynamics ({num_actions(dynamics)} actions)"
+
+
+def _choose_dynamics(policies: Sequence[tuple[str, Any]], dynamics: str | None = None,
+                     source: str = "dynamics") -> tuple[str, str | None]:
+    """(dynamics, what decided it: an argument name, or None for the default)."""
+    from cpsim.config import DYNAMICS_MODELS, SimConfig
+
+    if dynamics is not None and dynamics not in DYNAMICS_MODELS:
+        raise ValueError(f"{source}: unknown dynamics model {dynamics!r}; accepted: {sorted(DYNAMICS_MODELS)}")
+    chosen, by = dynamics, (source if dynamics is not None else None)
+    for argument, model in policies:
+        if model is None:
+            continue
+        d = policy_dynamics(model, argument)
+        if d is None:
+            continue
+        if chosen is None:
+            chosen, by = d, argument
+        elif d != chosen:
+            raise ValueError(f"{argument}: acts in {_describe(d)}, but {by} gives {_describe(chosen)}; every "
+                             "learned policy of one evaluation (ego policies, traffic policy, PPO co-player) "
+                             "must use the same dynamics")
+    return (chosen, by) if chosen is not None else (SimConfig().dynamics, None)
+
+
+def resolve_dynamics(policies: Sequence[tuple[str, Any]], dynamics: str | None = None,
+                     source: str = "dynamics") -> str:
+    """The one dynamics model of an evaluation.
+
+    ``policies``: ``(argument name, policy)`` pairs (anything :func:`policy_dynamics`
+    reads; None entries are skipped). ``dynamics``: an explicit choice (named ``source``
+    in messages) the policies must agree with. Without either, the simulator's default
+    (``SimConfig().dynamics``, jerk). Raises ``ValueError`` naming the argument and both
+    dynamics models when two disagree.
+    """
+    return _choose_dynamics(policies, dynamics, source)[0]
+
+
+def adapt_bc_policy(model: Any, dynamics: str, dt: float = 0.1, argument: str = "bc_policy") -> Any:
+    """A BC traffic model for a simulator of ``dynamics`` (step ``dt``).
+
+    A ``targets``-head :class:`~cpalgo.traffic.bc.BCPolicy` regresses target accelerations,
+    so it drives under either dynamics: a copy that converts them with that dynamics' rule
+    (:func:`~cpalgo.traffic.bc.targets_to_logits`) is returned when the model was saved for
+    another. An ``actions``-head model classifies over its own action set: ``ValueError``
+    naming ``argument`` when that set is another dynamics'. Anything else is returned as is.
+    """
+    from cpalgo.traffic.bc import BCPolicy
+    from cpsim.config import num_actions
+
+    if not isinstance(model, BCPolicy):
+        return model
+    if model.head == "targets":
+        if model.dynamics == dynamics and model.dt == float(dt):
+            return model
+        return model.for_dynamics(dynamics, dt)
+    if model.num_actions != num_actions(dynamics):
+        raise ValueError(f"{argument}: the BC model has an 'actions' head over {model.num_actions} actions "
+                         f"({model.dynamics} dynamics) and cannot drive a simulator of {_describe(dynamics)}; "
+                         "only a 'targets'-head model (the shipped zoo/bc_traffic.pt) converts to another dynamics")
+    return model
+
+
+def _policy_name(policy: Any) -> str:
+    """How messages name an ego policy: its checkpoint or label, a path, or its type."""
+    if isinstance(policy, EgoPolicy):
+        return policy.checkpoint or policy.label
+    if isinstance(policy, (str, os.PathLike)):
+        return str(policy)
+    return getattr(policy, "__name__", type(policy).__name__)
+
+
 def _obs_size_of(model: Any) -> int | None:
     shape = getattr(getattr(model, "observation_space", None), "shape", None)
     return int(np.prod(shape)) if shape else getattr(model, "obs_size", None)
@@ -508,14 +653,33 @@ class Evaluator:
             ``normal``, ``cautious`` and ``mix`` (and ``selfplay`` when there is no PPO
             policy); needed only for those.
         ppo_policy: model or checkpoint path for ``selfplay``, driven under the normal
-            profile (default :data:`DEFAULT_PPO_PATH` when it exists).
-        bc_policy: model or ``.pt`` path for ``bc`` (default :data:`DEFAULT_BC_PATH`).
-        config: :class:`EvalConfig`; ``sim_config``: a ``cpsim.SimConfig``.
+            profile (default :data:`DEFAULT_PPO_PATH` when it exists and acts in the
+            evaluation's dynamics; otherwise ``traffic_policy`` under p_train conditions,
+            recorded in :attr:`notes` and each result's ``meta``, with one warning line).
+        bc_policy: model or ``.pt`` path for ``bc`` (default :data:`DEFAULT_BC_PATH`); a
+            ``targets``-head model drives under the evaluation's dynamics
+            (:func:`adapt_bc_policy`).
+        config: :class:`EvalConfig`; ``sim_config``: a ``cpsim.SimConfig`` or mapping.
+        policies: the ego policies this evaluator will :meth:`run` (anything
+            :func:`as_ego_policy` takes; a mapping names them ``{argument: policy}``), read
+            only to choose the dynamics.
+        dynamics: ``jerk`` or ``classic``; with ``sim_config``'s ``dynamics`` (a mapping's
+            key or a ``SimConfig``), an explicit choice the policies must agree with.
+
+    Dynamics: the simulator acts in the dynamics model of the learned policies given (ego
+    ``policies``, ``traffic_policy``, ``ppo_policy``), read from the size of their discrete
+    action sets (:func:`policy_dynamics`); they and an explicit choice must all agree
+    (``ValueError`` naming the argument and both dynamics). Without any, the default
+    co-player checkpoints decide, and without those the simulator's default (jerk). Built-in controllers and teachers drive under either. :attr:`dynamics`
+    holds the choice, :attr:`dynamics_source` what made it.
     """
 
     def __init__(self, tasks: Sequence[Task], regimes: Sequence[str] = REGIMES, *,
                  traffic_policy: Any = None, bc_policy: Any = None, ppo_policy: Any = None,
-                 config: EvalConfig | None = None, sim_config: Any = None):
+                 config: EvalConfig | None = None, sim_config: Any = None,
+                 policies: Sequence[Any] | Mapping[str, Any] = (), dynamics: str | None = None):
+        from cpsim.config import SimConfig
+
         self.config = config or EvalConfig()
         self.tasks = list(tasks)
         if not self.tasks:
@@ -528,23 +692,49 @@ class Evaluator:
         self.deploy = deployment_condition(
             self.config.deploy_condition if isinstance(self.config.deploy_condition, str)
             else np.asarray(self.config.deploy_condition, np.float32), "deploy_condition")
-        if "selfplay" in self.regimes:
-            if ppo_policy is None and DEFAULT_PPO_PATH.is_file():
-                ppo_policy = DEFAULT_PPO_PATH
-            if isinstance(ppo_policy, (str, os.PathLike)):
-                ppo_policy = load_model(ppo_policy, "ppo_policy")
-        self.ppo_policy = ppo_policy
-        needs_traffic = {"aggressive", "normal", "cautious", "mix"} & set(self.regimes)
-        if "selfplay" in self.regimes and ppo_policy is None:
-            needs_traffic.add("selfplay")
+        base = SimConfig.from_dict(sim_config)
+        explicit, source = dynamics, "dynamics"
+        if isinstance(sim_config, SimConfig) or (isinstance(sim_config, Mapping) and "dynamics" in sim_config):
+            if dynamics is not None and dynamics != base.dynamics:
+                raise ValueError(f"dynamics: {dynamics!r} disagrees with sim_config.dynamics {base.dynamics!r}")
+            explicit, source = base.dynamics, "sim_config.dynamics"
+        # the learned policies given: their action sets choose the dynamics
+        if "selfplay" in self.regimes and isinstance(ppo_policy, (str, os.PathLike)):
+            ppo_policy = load_model(ppo_policy, "ppo_policy")
         if isinstance(traffic_policy, (str, os.PathLike)):
             traffic_policy = load_model(traffic_policy, "traffic_policy")
-        if needs_traffic and traffic_policy is None and DEFAULT_TRAFFIC_PATH.is_file():
-            traffic_policy = load_model(DEFAULT_TRAFFIC_PATH, "traffic_policy")
+        named = list(policies.items()) if isinstance(policies, Mapping) else [
+            (f"policy {_policy_name(p)!r}", p) for p in policies]
+        given = [*named, ("traffic_policy", traffic_policy)]
+        if "selfplay" in self.regimes:
+            given.append(("ppo_policy", ppo_policy))
+        self.dynamics, self.dynamics_source = _choose_dynamics(given, explicit, source)
+        #: what this evaluation does other than asked (e.g. the selfplay co-player fallback)
+        self.notes: dict[str, str] = {}
+        needs_traffic = {"aggressive", "normal", "cautious", "mix"} & set(self.regimes)
+        if needs_traffic and traffic_policy is None:
+            traffic_policy = self._default_coplayer(DEFAULT_TRAFFIC_PATH, "traffic_policy", needs_traffic)
+        if "selfplay" in self.regimes and ppo_policy is None and DEFAULT_PPO_PATH.is_file():
+            default = load_model(DEFAULT_PPO_PATH, "ppo_policy")
+            if self._agrees(default, "ppo_policy", DEFAULT_PPO_PATH):
+                ppo_policy = default
+            else:
+                self.notes["selfplay"] = (
+                    f"the default PPO co-player {DEFAULT_PPO_PATH.name} acts in "
+                    f"{_describe(policy_dynamics(default, 'ppo_policy'))}, this evaluation in {self.dynamics}: "
+                    "'selfplay' co-players are the traffic policy under p_train conditions instead "
+                    f"(give a {self.dynamics} --ppo-policy / ppo_policy for the PPO column)")
+                print(f"warning: {self.notes['selfplay']}", file=sys.stderr)
+        self.ppo_policy = ppo_policy
+        if "selfplay" in self.regimes and ppo_policy is None:
+            needs_traffic.add("selfplay")
+            if traffic_policy is None:
+                traffic_policy = self._default_coplayer(DEFAULT_TRAFFIC_PATH, "traffic_policy", needs_traffic)
         if needs_traffic and traffic_policy is None:
             raise ValueError(f"traffic_policy: regimes {sorted(needs_traffic)} need a co-player policy "
                              "(the self-play / conditioned anchor checkpoint)")
         self.traffic_policy = traffic_policy
+        sim_cfg = base.replace(dynamics=self.dynamics, goal_criterion="evaluation")
         if "bc" in self.regimes:
             if bc_policy is None:
                 if not DEFAULT_BC_PATH.is_file():
@@ -553,6 +743,7 @@ class Evaluator:
                 bc_policy = DEFAULT_BC_PATH
             if isinstance(bc_policy, (str, os.PathLike)):
                 bc_policy = load_model(bc_policy, "bc_policy")
+            bc_policy = adapt_bc_policy(bc_policy, self.dynamics, sim_cfg.dt, "bc_policy")
         self.bc_policy = bc_policy
 
         import cpsim
@@ -572,11 +763,8 @@ class Evaluator:
         self.num_worlds = int(min(self.config.max_worlds, n_items))
         # one goal test for every deployment condition and every agent (DESIGN.md,
         # "Evaluation goal criterion"): 2 m, no effective speed limit
-        from cpsim.config import SimConfig
-
-        kwargs = {"config": SimConfig.from_dict(sim_config).replace(goal_criterion="evaluation")}
         self.sim = cpsim.Simulator(self.scenarios, num_worlds=self.num_worlds, max_agents=max_agents,
-                                   device=self.config.device, seed=self.config.seed, **kwargs)
+                                   device=self.config.device, seed=self.config.seed, config=sim_cfg)
         self.obs_size = int(self.sim.obs_layout.size)
         for model, arg in ((self.traffic_policy, "traffic_policy"), (self.bc_policy, "bc_policy"),
                            (self.ppo_policy, "ppo_policy")):
@@ -590,6 +778,31 @@ class Evaluator:
         self._drivers = self._make_drivers()
         # item layout: rows ordered split -> regime -> task (tables group this way)
         self.items = self._layout()
+
+    # ---------------------------------------------------------------- defaults
+    def _agrees(self, model: Any, argument: str, path: Path) -> bool:
+        """Whether a default co-player acts in the evaluation's dynamics. When no policy or
+        explicit choice has decided them yet, the default decides."""
+        d = policy_dynamics(model, argument)
+        if d is None or d == self.dynamics:
+            return True
+        if self.dynamics_source is None:
+            self.dynamics, self.dynamics_source = d, f"the default {argument} {path.name}"
+            return True
+        return False
+
+    def _default_coplayer(self, path: Path, argument: str, regimes: set[str]) -> Any:
+        """The default traffic policy (None when missing); ``ValueError`` when it acts in
+        other dynamics than the evaluation's."""
+        if not path.is_file():
+            return None
+        model = load_model(path, argument)
+        if not self._agrees(model, argument, path):
+            raise ValueError(f"{argument}: regimes {sorted(regimes)} need a co-player policy; the default "
+                             f"{path.name} acts in {_describe(policy_dynamics(model, argument))}, but "
+                             f"{self.dynamics_source} gives {_describe(self.dynamics)}: give a "
+                             f"{self.dynamics} traffic policy (--traffic-policy)")
+        return model
 
     # ---------------------------------------------------------------- layout
     def _make_drivers(self) -> dict[str, Any]:
@@ -633,7 +846,18 @@ class Evaluator:
         """Evaluate one policy on every task-regime; returns its :class:`EvalResult`."""
         ego = as_ego_policy(policy, label)
         if ego.controller == _POLICY:
-            check_obs_size(ego, self.obs_size, f"policy {ego.checkpoint or ego.label!r}")
+            name = f"policy {ego.checkpoint or ego.label!r}"
+            check_obs_size(ego, self.obs_size, name)
+            d = policy_dynamics(ego, name)
+            if d is not None and d != self.dynamics:
+                by = f" (from {self.dynamics_source})" if self.dynamics_source else " (the default)"
+                raise ValueError(f"{name}: acts in {_describe(d)}, but this evaluator's simulator uses "
+                                 f"{_describe(self.dynamics)}{by}; give the policy to Evaluator(policies=...) "
+                                 f"or build it with dynamics={d!r}")
+            if isinstance(ego, ModelEgo):  # a BC model as the ego: the simulator's action set
+                model = adapt_bc_policy(ego.model, self.dynamics, float(self.sim.config.dt), name)
+                if model is not ego.model:
+                    ego = ModelEgo(model, ego.label, ego.checkpoint)
         cfg = self.config
         n = self.num_rows
         W = self.num_worlds
@@ -668,7 +892,8 @@ class Evaluator:
         cols.update(out)
         meta = {"deploy_condition": self.deploy.tolist(), "regimes": list(self.regimes),
                 "seconds": elapsed, "task_regimes_per_second": n / max(elapsed, 1e-9),
-                "simulator_steps": steps, "num_worlds": W, "max_agents": int(self.sim.max_agents)}
+                "simulator_steps": steps, "num_worlds": W, "max_agents": int(self.sim.max_agents),
+                "dynamics": self.dynamics, **({"notes": dict(self.notes)} if self.notes else {})}
         return EvalResult(ego.label, ego.checkpoint, cols, trajectories, meta)
 
     def _run_chunk(self, ego: EgoPolicy, rows: np.ndarray, record: set[int]
@@ -815,22 +1040,29 @@ def _progress(total: int, enabled: bool, label: str) -> Any:
 # ============================================================================ convenience
 def evaluate(policy: Any, tasks: Sequence[Task], regimes: Sequence[str] = REGIMES,
              deploy_condition: str | Sequence[float] = "normal", *, traffic_policy: Any = None,
-             bc_policy: Any = None, label: str | None = None, **config: Any) -> EvalResult:
+             bc_policy: Any = None, ppo_policy: Any = None, label: str | None = None,
+             dynamics: str | None = None, sim_config: Any = None, **config: Any) -> EvalResult:
     """Evaluate one policy on ``tasks`` x ``regimes`` (see :class:`Evaluator`).
 
     ``policy``: checkpoint path, SB3 model, callable or built-in controller name
-    (``replay``/``expert``, ``idm``). Extra keyword arguments go to :class:`EvalConfig`.
+    (``replay``/``expert``, ``idm``). The simulator's dynamics follow the learned policies
+    (``dynamics`` / ``sim_config``: an explicit choice they must agree with). Extra keyword
+    arguments go to :class:`EvalConfig`.
     """
     dc = deploy_condition if isinstance(deploy_condition, str) else tuple(float(x) for x in deploy_condition)
     cfg = EvalConfig.from_dict({"deploy_condition": dc, **config})
-    ev = Evaluator(tasks, regimes, traffic_policy=traffic_policy, bc_policy=bc_policy, config=cfg)
-    return ev.run(policy, label)
+    ego = as_ego_policy(policy, label)
+    ev = Evaluator(tasks, regimes, traffic_policy=traffic_policy, bc_policy=bc_policy, ppo_policy=ppo_policy,
+                   config=cfg, policies=[ego], dynamics=dynamics, sim_config=sim_config)
+    return ev.run(ego)
 
 
 def evaluate_checkpoints(policies: Sequence[Any], tasks: Sequence[Task], regimes: Sequence[str] = REGIMES,
                          deploy_condition: str | Sequence[float] = "normal", *, labels: Sequence[str] | None = None,
-                         traffic_policy: Any = None, bc_policy: Any = None, **config: Any) -> list[EvalResult]:
-    """Evaluate several policies / checkpoints on the same task-regimes (one simulator).
+                         traffic_policy: Any = None, bc_policy: Any = None, ppo_policy: Any = None,
+                         dynamics: str | None = None, sim_config: Any = None, **config: Any) -> list[EvalResult]:
+    """Evaluate several policies / checkpoints on the same task-regimes (one simulator,
+    in the dynamics of the learned policies, which must agree).
 
     Checkpoints that share a label are aggregated as seeds of one policy by
     :func:`cpalgo.evaluate.tables.summarize_results` (mean and std).
@@ -838,7 +1070,8 @@ def evaluate_checkpoints(policies: Sequence[Any], tasks: Sequence[Task], regimes
     dc = deploy_condition if isinstance(deploy_condition, str) else tuple(float(x) for x in deploy_condition)
     cfg = EvalConfig.from_dict({"deploy_condition": dc, **config})
     egos = [as_ego_policy(p, labels[i] if labels else None) for i, p in enumerate(policies)]
-    ev = Evaluator(tasks, regimes, traffic_policy=traffic_policy, bc_policy=bc_policy, config=cfg)
+    ev = Evaluator(tasks, regimes, traffic_policy=traffic_policy, bc_policy=bc_policy, ppo_policy=ppo_policy,
+                   config=cfg, policies=egos, dynamics=dynamics, sim_config=sim_config)
     for e in egos:  # fail before any run when a checkpoint does not fit the simulator
         if e.controller == _POLICY:
             check_obs_size(e, ev.obs_size, f"policy {e.checkpoint or e.label!r}")

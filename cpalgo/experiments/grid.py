@@ -96,7 +96,8 @@ class EvalSettings:
         coplayers: who follows the regime (``EvalConfig.coplayers``): ``vehicles`` (every
             vehicle present at t0, BehaviorBench) or ``controllable`` (the earlier rule).
         max_worlds, max_agents: simulator size of the evaluator.
-        sim_config: SimConfig overrides of the evaluator (must give the training layout).
+        sim_config: SimConfig overrides of the evaluator (must give the training layout; its
+            dynamics default to the anchor's, read from its action set, and must agree with it).
     """
 
     tasks: int = 50

@@ -327,8 +327,10 @@ def _evaluator(grid: GridConfig, deployment: str) -> Any:
         config = EvalConfig(deploy_condition=deployment, max_worlds=e.max_worlds, max_agents=e.max_agents,
                             seed=e.seed, device=grid.device, progress=False, torch_threads=grid.torch_threads,
                             coplayers=e.coplayers)
+        # every run starts from the anchor: its action set gives the evaluation's dynamics
         ev = Evaluator(tasks, e.regimes, traffic_policy=e.traffic_policy or grid.anchor, bc_policy=e.bc_policy,
-                       config=config, sim_config=dict(e.sim_config) if e.sim_config else None)
+                       config=config, sim_config=dict(e.sim_config) if e.sim_config else None,
+                       policies={"anchor": grid.anchor})
         while len(_EVALUATORS) >= 3:
             _EVALUATORS.pop(next(iter(_EVALUATORS)))
         _EVALUATORS[key] = ev

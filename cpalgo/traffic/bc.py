@@ -180,6 +180,25 @@ class BCPolicy(nn.Module):
             return targets_to_logits(out * th.as_tensor(TARGET_SCALE), obs, self.dynamics, self.dt)
         return out
 
+    def for_dynamics(self, dynamics: str, dt: float | None = None) -> "BCPolicy":
+        """A copy of this ``targets``-head model that acts in ``dynamics`` (step ``dt``,
+        default this model's): its target accelerations become that dynamics' actions
+        (:func:`targets_to_logits`). ``ValueError`` for an ``actions`` head, whose classes
+        are one dynamics' action set."""
+        import copy
+
+        from cpsim.config import num_actions
+
+        if self.head != "targets":
+            raise ValueError(f"dynamics: an 'actions'-head BC model acts in {self.dynamics} dynamics only "
+                             f"({self.num_actions} actions); only the 'targets' head converts to {dynamics!r}")
+        n = num_actions(dynamics)  # ValueError for an unknown model
+        other = copy.deepcopy(self)
+        other.dynamics = dynamics
+        other.num_actions = n
+        other.dt = float(self.dt if dt is None else dt)
+        return other
+
     def act(self, obs: th.Tensor, deterministic: bool = True) -> th.Tensor:
         """(n, D) float32 observations -> (n,) int64 actions (argmax, or a sample)."""
         logits = self.forward(obs)
