@@ -46,7 +46,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
-__all__ = ["AnchorRunSettings", "CURVE_COLUMNS", "STYLES", "train_anchor_run", "read_curve", "plot_curve",
+__all__ = ["AnchorRunSettings", "CURVE_COLUMNS", "STYLES", "train_anchor_run", "read_curve", "plot_curve", "curve_table",
            "RUN_FILE", "CHECKPOINT_FILE", "CURVE_FILE", "STOP_FILE"]
 
 RUN_FILE = "run.json"
@@ -362,6 +362,27 @@ def read_curve(run_dir: str | os.PathLike) -> list[dict[str, float]]:
         raise ValueError(f"run_dir: {str(run_dir)!r} has no {CURVE_FILE} (not a train-anchor run folder?)")
     with open(path, newline="") as fh:
         return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(fh)]
+
+
+def curve_table(rows: Sequence[dict[str, float]], every: int = 1) -> str:
+    """A markdown table of curve rows (every ``every``-th segment and the last): transitions,
+    training wall time, training and held-out outcome rates (%), entropy and critic EV."""
+    picked = [r for i, r in enumerate(rows) if i % every == every - 1 or i == len(rows) - 1]
+
+    def pct(r: dict[str, float], *keys: str) -> str:
+        return " / ".join(f"{100 * r[k]:.1f}" if k in r else "-" for k in keys)
+
+    lines = ["| transitions | training wall (s) | train goal / collision / off-road / timeout | held-out goal "
+             "aggr / normal / caut | held-out normal collision / off-road / timeout | first-decision entropy "
+             "(nats) | critic EV |", "|---|---|---|---|---|---|---|"]
+    for r in picked:
+        entropy = f"{r['normal_entropy']:.2f}" if "normal_entropy" in r else "-"
+        lines.append(f"| {r['timesteps'] / 1e6:.1f}M | {r['wall_s']:,.0f} | "
+                     f"{pct(r, 'train_goal', 'train_collision', 'train_offroad', 'train_timeout')} | "
+                     f"{pct(r, 'aggressive_goal', 'normal_goal', 'cautious_goal')} | "
+                     f"{pct(r, 'normal_collision', 'normal_offroad', 'normal_timeout')} | {entropy} | "
+                     f"{r.get('explained_variance', float('nan')):.2f} |")
+    return "\n".join(lines)
 
 
 def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:

@@ -65,13 +65,15 @@ def _train_anchor_run(args: argparse.Namespace) -> int:
 
 
 def cmd_curve(args: argparse.Namespace) -> int:
-    from cpalgo.anchor.selfplay import plot_curve, read_curve
+    from cpalgo.anchor.selfplay import curve_table, plot_curve, read_curve
 
     try:
         path = plot_curve(args.run_dir, args.out)
         rows = read_curve(args.run_dir)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if args.table:
+        print(curve_table(rows, args.table))
     last = rows[-1]
     print(f"{path}: {len(rows)} points, last at {last['timesteps'] / 1e6:.1f}M transitions "
           f"({last['wall_s'] / 3600:.2f} h): held-out goal aggressive / normal / cautious "

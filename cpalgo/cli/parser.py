@@ -250,6 +250,8 @@ def build_parser() -> argparse.ArgumentParser:
              "per style, the normal style's failure classes, the critic's explained variance.")
     cu.add_argument("run_dir", metavar="RUN_DIR", help="the run folder")
     cu.add_argument("--out", default=None, metavar="PNG", help="image to write (default: RUN_DIR/curve.png)")
+    cu.add_argument("--table", type=_positive_int, default=None, metavar="EVERY",
+                    help="also print the curve as a markdown table: every EVERY-th segment and the last")
     cu.set_defaults(func=cmd_curve)
 
     oc = add("outcomes", "self-play outcome rates of a checkpoint on held-out tasks",

@@ -104,6 +104,11 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
                             [{k: v for k, v in r.items() if k != "wall_s"} for r in rows])
     # the learning rate followed one cosine over the whole budget
     assert rows[0]["learning_rate"] > rows[1]["learning_rate"] > rows[2]["learning_rate"]
+    table = selfplay.curve_table(rows, every=2).splitlines()
+    # header, rule, every second segment and the last
+    assert len(table) == 2 + len(range(1, len(rows), 2)) + (len(rows) % 2) and table[-1].startswith(
+        f"| {rows[-1]['timesteps'] / 1e6:.1f}M |")
+    assert f"{100 * rows[-1]['normal_goal']:.1f}" in table[-1]
     png = plot_curve(tmp_path / "whole")
     assert png.is_file() and png.stat().st_size > 1000
 
