@@ -607,13 +607,14 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
     state["rows"] = [dict(r) for r in state["rows"]]
     pending = False  # the last row waits for the worker's evaluation
 
-    def complete_last_row(evaluated: dict[str, float] | None, trained_on: bool = False) -> None:
-        """Add the held-out columns to the last row: ``evaluated`` (the worker's), else
+    def complete_last_row(fetch: Callable[[], dict[str, float] | None] | None, trained_on: bool = False) -> None:
+        """Add the held-out columns to the last row: ``fetch()``'s (the worker's), else
         measured here on the last checkpoint (``trained_on``: the model has trained past it)."""
         from cpalgo.counterplay.algorithm import CounterPlay
 
         row = state["rows"][-1]
         t_eval = time.perf_counter()
+        evaluated = fetch() if fetch is not None else None
         where = "evaluated by the worker"
         if evaluated is None:
             where = "evaluated here"
@@ -652,7 +653,7 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         env.close()
         train_wall = time.perf_counter() - t0
         if pending:  # the previous segment's evaluation ran during this one's training
-            complete_last_row(helper.evaluation(), trained_on=True)
+            complete_last_row(helper.evaluation, trained_on=True)
             pending = False
         row: dict[str, Any] = {"segment": segment, "timesteps": int(model.num_timesteps),
                                "wall_s": round(float(state["wall_s"]) + train_wall, 1),
@@ -690,7 +691,7 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
     else:
         stop = None
     if pending:  # the piece ends: wait for the last evaluation and keep it in the checkpoint
-        complete_last_row(helper.evaluation())
+        complete_last_row(helper.evaluation)
         _save(model, run_dir, state)
     if stop is not None:
         log(stop)
