@@ -629,6 +629,7 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         complete_last_row(None)
         _save(model, run_dir, state)
 
+    stop = None
     start = time.perf_counter()
     while (model.num_timesteps if model is not None else 0) < settings.timesteps:
         segment = int(state["segment"])
@@ -637,14 +638,13 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         env = _build_env(recipe, settings, segment, womd, procedural)
         build_s = time.perf_counter() - t_build
         prebuilt = bool(getattr(env.venv.sim.model, "prebuilt", False))
-        next_target = (segment + 1) * settings.segment_timesteps
-        if helper is not None and next_target < settings.timesteps:
+        target = min((segment + 1) * settings.segment_timesteps, settings.timesteps)
+        if helper is not None and target < settings.timesteps:
             helper.prepare(segment + 1, env.venv.sim.config)
         if model is None:
             model = _new_model(recipe, settings, env)
         else:
             model.set_env(env)  # force_reset: the segment starts from a reset of the new env
-        target = min((segment + 1) * settings.segment_timesteps, settings.timesteps)
         stats = _SegmentStats()
         t0 = time.perf_counter()
         model.learn(max(target - model.num_timesteps, 1), reset_num_timesteps=False, callback=stats,
@@ -681,15 +681,12 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         if helper is not None:
             helper.evaluate(run_dir / CHECKPOINT_FILE, run_dir / "recipe.yml")
             pending = True
-        stop = None
         if (run_dir / STOP_FILE).exists():
             stop = f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}"
         elif stop_after_s is not None and time.perf_counter() - start >= stop_after_s:
             stop = f"stopping after {time.perf_counter() - start:.0f} s of this piece (--stop-after)"
         if stop is not None:
             break
-    else:
-        stop = None
     if pending:  # the piece ends: wait for the last evaluation and keep it in the checkpoint
         complete_last_row(helper.evaluation)
         _save(model, run_dir, state)
