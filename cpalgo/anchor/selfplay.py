@@ -73,6 +73,13 @@ UPDATE_STATS: dict[str, str] = {"train/approx_kl": "approx_kl", "train/clip_frac
 #: recipe parses it, applied to the loaded model and recorded in ``run.json`` under "changes"
 #: with the segment and transition count it applies from; the checkpoints then carry it.
 CHANGEABLE: tuple[str, ...] = ("learning_rate", "ent_coef", "vf_coef", "clip_range", "max_grad_norm", "n_epochs")
+#: ``SelfPlayVecEnv`` settings a resumed piece may change, with their parsers: unlike the PPO
+#: settings (carried by the checkpoint) they live in ``run.json``'s "changes" only, and every
+#: later piece applies them when it builds its envs (:func:`env_changes`).
+ENV_CHANGEABLE: tuple[str, ...] = ("timeout_terminal", "eval_task_share")
+#: run settings a resumed piece may change: torch threads (the results do not depend on them
+#: beyond float rounding; useful when two runs share a machine)
+RUN_CHANGEABLE: tuple[str, ...] = ("threads",)
 #: seed of the held-out procedural tasks (``cpsim.scenario.eval_pool``), shared with the CLI
 HELD_OUT_SEED = 0
 
@@ -186,13 +193,15 @@ def _segment_pool(settings: AnchorRunSettings, segment: int, womd: Sequence[Any]
 
 
 def _build_env(recipe: Any, settings: AnchorRunSettings, segment: int, womd: Sequence[Any],
-               procedural: Sequence[Any] | None = None) -> Any:
-    """The segment's env; ``procedural``: its procedural pool when already drawn."""
+               procedural: Sequence[Any] | None = None, env_overrides: dict[str, Any] | None = None) -> Any:
+    """The segment's env; ``procedural``: its procedural pool when already drawn;
+    ``env_overrides``: the run's recorded env changes (:func:`env_changes`) over the recipe's."""
     from stable_baselines3.common.vec_env import VecMonitor
 
     from cpsim import SelfPlayVecEnv
 
     kwargs = {k: v for k, v in recipe.env_kwargs.items() if k not in ("family", "num_scenarios", "womd_dir", "seed")}
+    kwargs.update(env_overrides or {})
     env_seed = int(np.random.SeedSequence([settings.seed, segment, 1]).generate_state(1)[0])
     pool = (list(procedural) + list(womd)) if procedural is not None else _segment_pool(settings, segment, womd)
     env = SelfPlayVecEnv(scenarios=pool, num_worlds=recipe.num_worlds, seed=env_seed, **kwargs)
@@ -450,9 +459,10 @@ def _recipe_from_run(run_dir: Path) -> Any:
 def parse_changes(items: Sequence[str]) -> dict[str, Any]:
     """``["ent_coef=0.01", "learning_rate=cosine(3e-3)"]`` -> checked ``{key: value}``.
 
-    Keys must be in :data:`CHANGEABLE`; schedules (``learning_rate``, ``clip_range``) take the
-    recipe's forms, the rest a number (``n_epochs`` a whole number >= 1). Raises ``ValueError``
-    naming the item.
+    Keys must be in :data:`CHANGEABLE`, :data:`ENV_CHANGEABLE` or :data:`RUN_CHANGEABLE`;
+    schedules (``learning_rate``, ``clip_range``) take the recipe's forms, ``timeout_terminal``
+    true / false, ``eval_task_share`` a share in [0, 1], ``n_epochs`` and ``threads`` a whole
+    number >= 1, the rest a number >= 0. Raises ``ValueError`` naming the item.
     """
     from cpalgo.recipes import parse_schedule
 
@@ -462,24 +472,47 @@ def parse_changes(items: Sequence[str]) -> dict[str, Any]:
         key, text = key.strip(), text.strip()
         if not sep or not key or not text:
             raise ValueError(f"set: expected KEY=VALUE, got {item!r}")
-        if key not in CHANGEABLE:
-            raise ValueError(f"set: {key!r} cannot be changed in a resumed run; changeable: {', '.join(CHANGEABLE)}")
+        if key not in CHANGEABLE + ENV_CHANGEABLE + RUN_CHANGEABLE:
+            raise ValueError(f"set: {key!r} cannot be changed in a resumed run; changeable: "
+                             f"{', '.join(CHANGEABLE + ENV_CHANGEABLE + RUN_CHANGEABLE)}")
         if key in ("learning_rate", "clip_range"):
             parse_schedule(text, key)  # raises naming the key
             changes[key] = text
-        elif key == "n_epochs":
+        elif key in ("n_epochs", "threads"):
             if not text.isdigit() or int(text) < 1:
-                raise ValueError(f"set: n_epochs must be a whole number >= 1, got {text!r}")
+                raise ValueError(f"set: {key} must be a whole number >= 1, got {text!r}")
             changes[key] = int(text)
+        elif key == "timeout_terminal":
+            if text.lower() not in ("true", "false"):
+                raise ValueError(f"set: timeout_terminal must be true or false, got {text!r}")
+            changes[key] = text.lower() == "true"
         else:
             try:
                 value = float(text)
             except ValueError:
                 raise ValueError(f"set: {key} must be a number, got {text!r}") from None
-            if not np.isfinite(value) or value < 0:
-                raise ValueError(f"set: {key} must be a finite number >= 0, got {text!r}")
+            if not np.isfinite(value) or value < 0 or (key == "eval_task_share" and value > 1):
+                bound = "in [0, 1]" if key == "eval_task_share" else ">= 0"
+                raise ValueError(f"set: {key} must be a finite number {bound}, got {text!r}")
             changes[key] = value
     return changes
+
+
+def env_changes(doc: dict[str, Any]) -> dict[str, Any]:
+    """The :data:`ENV_CHANGEABLE` settings recorded in a ``run.json`` document's "changes",
+    later entries over earlier ones: what every env of the run's next pieces is built with."""
+    merged: dict[str, Any] = {}
+    for entry in doc.get("changes", []):
+        merged.update({k: v for k, v in entry.get("set", {}).items() if k in ENV_CHANGEABLE})
+    return merged
+
+
+def _run_changes(settings: "AnchorRunSettings", doc: dict[str, Any]) -> "AnchorRunSettings":
+    """``settings`` with the :data:`RUN_CHANGEABLE` values recorded in ``doc``'s "changes"."""
+    merged: dict[str, Any] = {}
+    for entry in doc.get("changes", []):
+        merged.update({k: v for k, v in entry.get("set", {}).items() if k in RUN_CHANGEABLE})
+    return dataclasses.replace(settings, **merged) if merged else settings
 
 
 def _apply_changes(model: Any, changes: dict[str, Any]) -> None:
@@ -492,6 +525,8 @@ def _apply_changes(model: Any, changes: dict[str, Any]) -> None:
     from cpalgo.recipes import parse_schedule
 
     for key, value in changes.items():
+        if key in ENV_CHANGEABLE + RUN_CHANGEABLE:
+            continue  # applied from run.json where envs are built / the piece starts
         if key == "learning_rate":
             model.learning_rate = parse_schedule(value, key)
             model.lr_schedule = get_schedule_fn(model.learning_rate)
@@ -507,8 +542,9 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
                      log: Callable[[str], None] = print) -> Any:
     """Start (``settings`` given) or resume (``resume=True``) the run in ``run_dir``.
 
-    ``changes`` (resume only): ``KEY=VALUE`` items of :data:`CHANGEABLE` PPO settings that
-    hold from this piece on (recorded in ``run.json``; see :func:`parse_changes`).
+    ``changes`` (resume only): ``KEY=VALUE`` items of :data:`CHANGEABLE` PPO settings,
+    :data:`ENV_CHANGEABLE` env settings or :data:`RUN_CHANGEABLE` run settings that hold from
+    this piece on (recorded in ``run.json``; see :func:`parse_changes`).
     ``worker``: build each next segment's env and evaluate each finished segment in a
     worker process beside the training (same results, less wall time).
 
@@ -545,8 +581,6 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
         with atomic_path(run_dir / RUN_FILE) as tmp:
             Path(tmp).write_text(json.dumps({"settings": dataclasses.asdict(settings)}, indent=2) + "\n")
         recipe = load_recipe(run_dir / "recipe.yml")
-    if settings.threads is not None:
-        th.set_num_threads(settings.threads)
     if command:
         with open(run_dir / COMMANDS_FILE, "a") as fh:
             fh.write(command + "\n")
@@ -573,10 +607,17 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
     else:
         state = {"segment": 0, "wall_s": 0.0, "rows": []}
         model = None
+        doc = {}
+    # env and run settings changed in earlier pieces (or this one) hold for every later piece
+    env_overrides = env_changes(doc)
+    settings = _run_changes(settings, doc)
+    if settings.threads is not None:
+        th.set_num_threads(settings.threads)
 
     helper = _SegmentWorker(settings, log) if worker else None
     try:
-        return _run_segments(run_dir, settings, recipe, model, state, womd, tasks, helper, stop_after_s, log)
+        return _run_segments(run_dir, settings, recipe, model, state, womd, tasks, helper, stop_after_s, log,
+                             env_overrides)
     finally:
         if helper is not None:
             helper.close()
@@ -602,7 +643,8 @@ def _save(model: Any, run_dir: Path, state: dict[str, Any]) -> None:
 
 def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model: Any, state: dict[str, Any],
                   womd: list[Any], tasks: list[Any], helper: _SegmentWorker | None,
-                  stop_after_s: float | None, log: Callable[[str], None]) -> Any:
+                  stop_after_s: float | None, log: Callable[[str], None],
+                  env_overrides: dict[str, Any] | None = None) -> Any:
     """The segment loop of :func:`train_anchor_run`."""
     state["rows"] = [dict(r) for r in state["rows"]]
     pending = False  # the last row waits for the worker's evaluation
@@ -635,7 +677,7 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         segment = int(state["segment"])
         t_build = time.perf_counter()
         procedural = helper.take(segment) if helper is not None else None
-        env = _build_env(recipe, settings, segment, womd, procedural)
+        env = _build_env(recipe, settings, segment, womd, procedural, env_overrides)
         build_s = time.perf_counter() - t_build
         prebuilt = bool(getattr(env.venv.sim.model, "prebuilt", False))
         target = min((segment + 1) * settings.segment_timesteps, settings.timesteps)

@@ -148,13 +148,18 @@ def build_parser() -> argparse.ArgumentParser:
                        help="held-out procedural tasks evaluated before and after")
 
     run = add("run", "post-train the shipped anchor with PPO-Continue and CounterPlay (the main job)",
-              f"Post-train the shipped self-play anchor ({DEFAULT_ANCHOR}) with PPO-Continue and with "
-              f"CounterPlay at the same budget and seed on the procedural training pool "
-              f"({DEFAULT_POST_CONFIG}), evaluate the anchor and both on the same held-out tasks "
+              f"Post-train a self-play anchor (--anchor, the shipped {DEFAULT_ANCHOR} by default) with "
+              f"PPO-Continue and with CounterPlay at the same budget and seed on the procedural training pool "
+              f"(--config, {DEFAULT_POST_CONFIG} by default), evaluate the anchor and both on the same held-out tasks "
               "(both splits, all traffic regimes: score, completion, at-fault collisions, timeouts, "
               "failure repair), and write the checkpoints, tables and a summary. --eval-tasks counts "
               "tasks per split.")
     common(run)
+    run.add_argument("--anchor", type=_existing_file, default=DEFAULT_ANCHOR, metavar="ZIP",
+                     help="anchor checkpoint both methods start from (they build its network)")
+    run.add_argument("--config", type=_recipe_file, default=DEFAULT_POST_CONFIG, metavar="YAML",
+                     help="zoo YAML recipe: PPO and CounterPlay settings and the training env "
+                          "(zoo/counterplay_selfplay.yml for the self-play anchor)")
     post_options(run, "folder for the grid: runs/<method>/seed0/model.zip, results.csv, tables.md, "
                       "summary.md, summary.json and plots (a rerun resumes what is there)",
                  "B_post of each method: every agent transition, main or branch, counts, and both methods "
@@ -162,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     from cpalgo.anchor.compress import add_command as add_compress_command
     from cpalgo.experiments.command import add_commands, main_job_defaults
 
-    run.set_defaults(anchor=DEFAULT_ANCHOR, config=DEFAULT_POST_CONFIG, **main_job_defaults())
+    run.set_defaults(**main_job_defaults())
 
     pt = add("post-train", "CounterPlay post-training of an anchor checkpoint",
              "CounterPlay post-training of an anchor checkpoint with a zoo YAML recipe.")
@@ -233,9 +238,10 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--resume", default=None, metavar="RUN_DIR",
                     help="continue the run in RUN_DIR from its last checkpoint (settings from its run.json)")
     ta.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="with --resume: change a PPO setting from this piece on (learning_rate, ent_coef, vf_coef, "
+                    help="with --resume: change a setting from this piece on: PPO (learning_rate, ent_coef, vf_coef, "
                          "clip_range, max_grad_norm, n_epochs; schedules as in a recipe, e.g. "
-                         "learning_rate=cosine(3e-3)); recorded in the run's run.json; repeatable")
+                         "learning_rate=cosine(3e-3)), env (timeout_terminal=true|false, eval_task_share=S) or "
+                         "threads=N; recorded in the run's run.json and kept by later pieces; repeatable")
     ta.add_argument("--segment", type=_positive_int, default=10_000_000, metavar="N",
                     help="with --run-dir: transitions between checkpoints, curve points and pool draws")
     ta.add_argument("--pool-size", type=_positive_int, default=512, metavar="N",

@@ -160,6 +160,40 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     assert json.loads((run / "run.json").read_text())["changes"] == doc["changes"]  # nothing half-written
 
 
+def test_a_resumed_piece_changes_env_settings_and_later_pieces_keep_them(tmp_path: Path, recipe: str, monkeypatch):
+    import json
+
+    built: list[dict] = []
+    original = selfplay._build_env
+
+    def recording(*args, **kwargs):
+        env = original(*args, **kwargs)
+        built.append({"timeout_terminal": env.venv.timeout_terminal, "threads": th.get_num_threads()})
+        return env
+
+    monkeypatch.setattr(selfplay, "_build_env", recording)
+    threads = th.get_num_threads()
+    try:
+        run = tmp_path / "run"
+        train_anchor_run(run, _settings(recipe), stop_after_s=0.0, log=_quiet, worker=False)
+        train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, worker=False,
+                         changes=["timeout_terminal=true", "threads=1"])
+        doc = json.loads((run / "run.json").read_text())
+        assert doc["changes"][-1]["set"] == {"timeout_terminal": True, "threads": 1}
+        assert doc["settings"]["threads"] is None  # the run's settings stay as started; changes apply over them
+        # a later piece without --set still builds its envs with the change
+        train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, worker=False)
+        assert [b["timeout_terminal"] for b in built] == [False, True, True]
+        assert built[1]["threads"] == 1 and built[2]["threads"] == 1
+        assert selfplay.env_changes(doc) == {"timeout_terminal": True}
+        for bad, match in ((["timeout_terminal=yes"], "true or false"), (["eval_task_share=1.5"], r"in \[0, 1\]"),
+                           (["threads=0"], "threads must be a whole number")):
+            with pytest.raises(ValueError, match=match):
+                train_anchor_run(run, resume=True, log=_quiet, changes=bad)
+    finally:
+        th.set_num_threads(threads)
+
+
 def test_a_piece_killed_before_its_last_evaluation_is_completed_by_the_next(tmp_path: Path, recipe: str, monkeypatch):
     whole = tmp_path / "whole"
     train_anchor_run(whole, _settings(recipe), log=_quiet, worker=False)
