@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
 from cpalgo.common.checks import UsageError, brief, check_out_path
-from cpalgo.common.recipe_setup import check_algorithm_arguments, make_env
+from cpalgo.common.recipe_setup import anchor_network, check_algorithm_arguments, make_env
 from cpalgo.evaluate.held_out import held_out_outcomes
 from cpalgo.recipes import load_recipe, resolve_path
 
@@ -56,8 +57,11 @@ def post_train(anchor: str | os.PathLike = DEFAULT_ANCHOR, config: str | os.Path
     algo_kwargs = dict(recipe.algo_kwargs)
     algo_kwargs.update(overrides or {})
 
+    policy, algo_kwargs, note = anchor_network(anchor, recipe.policy, algo_kwargs, CounterPlay.policy_aliases)
+    if note is not None:
+        print(f"warning: {note}", file=sys.stderr)
     env = make_env(recipe, seed, num_worlds=worlds, **({} if scenarios is None else {"num_scenarios": scenarios}))
-    model = CounterPlay(recipe.policy, env, seed=seed, verbose=verbose, tensorboard_log=tensorboard, **algo_kwargs)
+    model = CounterPlay(policy, env, seed=seed, verbose=verbose, tensorboard_log=tensorboard, **algo_kwargs)
     try:
         model.set_parameters(str(anchor), exact_match=True)
     except Exception as exc:  # noqa: BLE001 - reported with the file name

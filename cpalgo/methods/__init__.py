@@ -44,6 +44,7 @@ import dataclasses
 import importlib
 import inspect
 import os
+import sys
 from typing import Any, Mapping
 
 __all__ = [
@@ -196,7 +197,9 @@ def build_method(name: str, anchor: str | os.PathLike, env: Any, *, policy: str 
     """Build method ``name`` on ``env``, starting from the ``anchor`` checkpoint's weights.
 
     Args:
-        anchor: SB3 checkpoint whose policy has the network of ``policy`` + ``algo_kwargs``.
+        anchor: SB3 checkpoint; the model gets its network (policy class and
+            ``policy_kwargs``, :func:`cpalgo.common.recipe_setup.anchor_network`), and a
+            ``policy`` / ``algo_kwargs["policy_kwargs"]`` that differ print one warning line.
         env: the self-play VecEnv (e.g. :class:`cpsim.SelfPlayVecEnv`, possibly wrapped).
         algo_kwargs: the recipe's algorithm arguments (PPO settings, policy_kwargs, ...).
         settings: extra settings of this method (override the recipe and the registry's).
@@ -220,6 +223,11 @@ def build_method(name: str, anchor: str | os.PathLike, env: Any, *, policy: str 
     anchor = resolve_path(anchor)  # zoo/anchor.zip names the shipped file from any folder
     if not os.path.isfile(anchor):
         raise ValueError(f"anchor: no such checkpoint {anchor!r}")
+    from cpalgo.common.recipe_setup import anchor_network
+
+    policy, kwargs, note = anchor_network(anchor, policy, kwargs, getattr(cls, "policy_aliases", {}))
+    if note is not None:
+        print(f"warning: {note}", file=sys.stderr)
     model = cls(policy, env, seed=seed, device=device, verbose=verbose, **kwargs)
     try:
         model.set_parameters(anchor, exact_match=True, device=device)

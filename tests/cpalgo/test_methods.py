@@ -18,6 +18,8 @@ from cpalgo.methods import build_method, describe_methods, get_method, method_na
 from cpalgo.methods.base import BudgetedCounterPlay, policy_parameters_equal  # noqa: E402
 from cpalgo.methods.distill_controls import StyleDistillation, raw_conditions_from_obs  # noqa: E402
 from cpalgo.methods.ppo import OpponentPPO, RewindPPO  # noqa: E402
+from cpalgo.policies import BehaviorLstmPolicy  # noqa: E402
+from cpalgo.policies import MlpLstmPolicy as FusedMlpLstmPolicy  # noqa: E402
 from cpalgo.recipes import CosineSchedule  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 from cpsim.conditions import PROFILES, STYLE_MASK  # noqa: E402
@@ -94,6 +96,8 @@ def test_build_method_finds_the_shipped_anchor_from_any_folder(tmp_path, monkeyp
     env = SelfPlayVecEnv(num_worlds=1, max_agents=2, num_scenarios=1)
     model = build_method("ppo-continue", "zoo/anchor.zip", env, algo_kwargs={"n_steps": 8, "batch_size": 8})
     assert model.policy.lstm_actor.hidden_size == 128  # the anchor's network, weights loaded
+    # saved as sb3-contrib's class, built as its fused subclass (the same network, faster)
+    assert type(model.policy) is FusedMlpLstmPolicy
 
 
 def test_build_method_rejects_bad_input(anchor, tmp_path):
@@ -104,15 +108,37 @@ def test_build_method_rejects_bad_input(anchor, tmp_path):
         build_method("ppo-continue", tmp_path / "missing.zip", env, algo_kwargs=ALGO)
     with pytest.raises(ValueError, match="budget: must be > 0"):
         build_method("ppo-continue", anchor, env, algo_kwargs=ALGO, budget=0)
-    other = dict(ALGO, policy_kwargs=dict(POLICY, lstm_hidden_size=8))
-    with pytest.raises(ValueError, match="anchor: .* does not fit the network"):
-        build_method("ppo-continue", anchor, env, algo_kwargs=other)
+    classic = SelfPlayVecEnv(num_worlds=2, max_agents=4, num_scenarios=4, episode_steps=EPISODE, dynamics="classic")
+    with pytest.raises(ValueError, match="anchor: .* does not fit the network"):  # 91 actions, the anchor 12
+        build_method("ppo-continue", anchor, classic, algo_kwargs=ALGO)
     with pytest.raises(ValueError, match="rewind_depth"):
         RewindPPO("MlpLstmPolicy", env, rewind_depth=0, **ALGO)
     with pytest.raises(ValueError, match="opponent_fraction"):
         OpponentPPO("MlpLstmPolicy", env, opponent_fraction=1.0, **ALGO)
     with pytest.raises(ValueError, match="teacher_style"):
         StyleDistillation("MlpLstmPolicy", env, teacher_style="reckless", **ALGO)
+
+
+def test_build_method_builds_the_anchors_network_not_the_recipes(anchor, tmp_path, capsys):
+    """A recipe whose ``policy`` / ``policy_kwargs`` differ from the anchor's gets the anchor's
+    network, with one warning line: a flat recipe with a BehaviorLstmPolicy anchor, and a
+    difference that no weight shape shows (the activation) with a flat anchor."""
+    behavior = tmp_path / "behavior.zip"
+    small = dict(lstm_hidden_size=8, features_extractor_kwargs=dict(features_dim=16))
+    saved = BudgetedCounterPlay("BehaviorLstmPolicy", make_env(), counterfactual=False, seed=0, n_steps=EPISODE,
+                                batch_size=64, n_epochs=1, policy_kwargs=small)
+    saved.save(behavior)
+    model = build_method("ppo-continue", behavior, make_env(), algo_kwargs=ALGO)  # the recipe: flat MlpLstmPolicy
+    assert type(model.policy) is BehaviorLstmPolicy and model.policy.lstm_actor.hidden_size == 8
+    assert all(th.equal(a, b) for a, b in zip(model.policy.state_dict().values(), saved.policy.state_dict().values()))
+    err = capsys.readouterr().err
+    assert err.count("warning:") == 1 and "not policy MlpLstmPolicy (the anchor's: BehaviorLstmPolicy)" in err
+    relu = dict(ALGO, policy_kwargs=dict(POLICY, activation_fn=th.nn.ReLU))
+    model = build_method("ppo-continue", anchor, make_env(), algo_kwargs=relu)
+    assert model.policy.activation_fn is th.nn.Tanh  # the anchor's (sb3-contrib's default)
+    assert "activation_fn" in capsys.readouterr().err
+    build_method("ppo-continue", anchor, make_env(), algo_kwargs=ALGO)  # the same network: no warning
+    assert "warning" not in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- PPO-Rewind
