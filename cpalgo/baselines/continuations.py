@@ -292,14 +292,18 @@ class ContinuationRunner(GrowingSimulator):
         generator: torch generator of the uniforms.
         proxy: co-player actions of ``proxy`` continuations (required when one is run).
         record: keep positions and every agent's actions (tests, inspection).
+        clip_reward: clamp each step's focal reward to [-c, c] before the returns, as the
+            learner's rollouts do (the algorithm's ``clip_reward``; None: no clamp).
     """
 
     def __init__(self, make_simulator: Callable[[int], Any], policy: Any, gamma: float,
-                 generator: th.Generator | None = None, proxy: ProxyFn | None = None, record: bool = True) -> None:
+                 generator: th.Generator | None = None, proxy: ProxyFn | None = None, record: bool = True,
+                 clip_reward: float | None = None) -> None:
         super().__init__(make_simulator, policy, generator)
         self.gamma = float(gamma)
         self.proxy = proxy
         self.record = bool(record)
+        self.clip_reward = clip_reward
 
     @th.no_grad()
     def run(self, jobs: Sequence[GroupJob]) -> list[GroupResult]:
@@ -425,7 +429,10 @@ class ContinuationRunner(GrowingSimulator):
             if self.record:
                 all_actions[:, t] = np.where(deciding[:n_used], actions[:n_used], -1)
             sim.step(actions)
-            f_rewards[:, t] = sim.reward.to(device)[rows_u, focal].float() * f_dec
+            reward = sim.reward.to(device)[rows_u, focal].float()
+            if self.clip_reward is not None:
+                reward = reward.clamp(-self.clip_reward, self.clip_reward)
+            f_rewards[:, t] = reward * f_dec
         else:
             if self.record:
                 xy[:, t_max] = _np(sim.xy)[:n_used]
@@ -731,7 +738,8 @@ class ContinuationPPO(HookedPPO):
         sim = base_vec_env(self.env).sim
         if self._runner is None or self._runner_sim is not sim:
             self._runner = ContinuationRunner(branch_simulator_factory(sim), self.policy, self.gamma,
-                                              self._cont_generator, proxy=self._proxy_fn(), record=True)
+                                              self._cont_generator, proxy=self._proxy_fn(), record=True,
+                                              clip_reward=self.clip_reward)
             self._runner_sim = sim
         self._runner.policy = self.policy
         return self._runner

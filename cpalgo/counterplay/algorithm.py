@@ -137,8 +137,9 @@ class CounterPlay(SettingsMixin, RolloutHooksMixin, SearchDriverMixin, Distillat
         keep_searches: searches kept per generation as tensor-free records for inspection
             (``cpalgo.counterplay.records``; 0 keeps nothing).
         clip_reward: clamp every step's reward to [-c, c] before it enters the rollout
-            buffer (BehaviorBench's trainer uses 1.0; None: no clamp). Logged episode returns
-            stay unclamped.
+            buffer (BehaviorBench's trainer uses 1.0; None: no clamp), and the focal rewards of
+            branches and continuations alike (selection by return, PPO on recoveries, the
+            continuation baselines' returns). Logged episode returns stay unclamped.
         schedule_timesteps: the length (in counted transitions) over which schedules of
             progress (learning rate, clip range) run, whatever ``learn`` is asked for; a run
             trained in several ``learn`` calls (pieces) then follows one schedule (None: SB3's

@@ -143,6 +143,8 @@ class BranchRunner(GrowingSimulator):
         obs_transform: maps raw simulator observations (N, D) to policy input, e.g.
             ``VecNormalize.normalize_obs``; identity by default.
         generator: torch generator of the fresh uniforms.
+        clip_reward: clamp each step's focal reward to [-c, c], as the learner's rollouts do
+            (CounterPlay's ``clip_reward``; None: no clamp).
     """
 
     def __init__(
@@ -151,9 +153,11 @@ class BranchRunner(GrowingSimulator):
         policy: RecurrentActorCriticPolicy,
         obs_transform: Callable[[th.Tensor], th.Tensor] | None = None,
         generator: th.Generator | None = None,
+        clip_reward: float | None = None,
     ) -> None:
         super().__init__(make_simulator, policy, generator)
         self.obs_transform = obs_transform
+        self.clip_reward = clip_reward
 
     # ------------------------------------------------------------------ run
     @th.no_grad()
@@ -247,7 +251,10 @@ class BranchRunner(GrowingSimulator):
                 f_logits[:, t] = logits.reshape(n_worlds, a, -1)[rows_u, focal_t[:n_used]]
 
             sim.step(actions)
-            f_rewards[:, t] = sim.reward.to(device)[rows_u, focal_t[:n_used]].float() * f_dec
+            reward = sim.reward.to(device)[rows_u, focal_t[:n_used]].float()
+            if self.clip_reward is not None:
+                reward = reward.clamp(-self.clip_reward, self.clip_reward)
+            f_rewards[:, t] = reward * f_dec
         else:
             xy[:, t_max] = sim.xy.to(device)[:n_used]
         all_actions = all_actions.cpu().numpy()

@@ -98,6 +98,7 @@ class SearchSettings:
     max_searches: int | None = None
     root_lifetime: str = "episode"
     seed: int = 0
+    clip_reward: float | None = None
 
     def __post_init__(self) -> None:
         if len(self.panel) == 0:
@@ -251,7 +252,8 @@ class SearchDriver:
             lstm_layers=lstm.num_layers, lstm_hidden=lstm.hidden_size, device=self.device,
         )
         self._sim = sim
-        self.runner = BranchRunner(branch_simulator_factory(sim), policy, obs_transform, self._branch_draws)
+        self.runner = BranchRunner(branch_simulator_factory(sim), policy, obs_transform, self._branch_draws,
+                                   clip_reward=s.clip_reward)
 
     @property
     def sim(self) -> Simulator | None:

@@ -111,7 +111,7 @@ class SettingsMixin:
             rho=float(self.rho), backtrack=self.backtrack, fixed_depth=int(self.fixed_depth), panel=tuple(self.panel),
             shared_randomness=self.shared_randomness, style_change=self.style_change, selection=self.selection,
             verify=self.verify, max_searches=None if self.max_searches is None else int(self.max_searches),
-            root_lifetime=self.root_lifetime, seed=int(self.seed or 0),
+            root_lifetime=self.root_lifetime, seed=int(self.seed or 0), clip_reward=self.clip_reward,
         )
 
     def _check_branching_env(self, env: VecEnv | None) -> None:

@@ -167,6 +167,31 @@ def test_runner_replays_a_root_deterministically_with_the_same_draws(anchor):
     assert not all(np.array_equal(out[0].actions[0], out[0].actions[j]) for j in (1, 2))
 
 
+def test_continuation_rewards_are_clamped_as_the_rollouts_are(anchor):
+    """With ``clip_reward`` the continuations' rewards and returns (VinePPO's values, DAPO's and
+    PlannerRFT's advantages, CRAFT's residuals) use the learner's clamped reward."""
+    c = 0.01
+    model = build("dapo", anchor, clip_reward=c)
+    collect(model)
+    assert model._runner.clip_reward == c
+    root = model.last_groups[0][0]
+    sim = base_vec_env(model.env).sim
+    out = {}
+    for clip in (None, c):
+        runner = ContinuationRunner(branch_simulator_factory(sim), model.policy, model.gamma,
+                                    th.Generator().manual_seed(3), clip_reward=clip)
+        out[clip] = runner.run([GroupJob(root=root, traffic=["policy"] * 3)])[0]
+    raw, clamped = out[None], out[c]
+    assert np.array_equal(raw.actions.numpy(), clamped.actions.numpy())  # the same draws, the same drive
+    assert (raw.rewards.abs() > c).any()
+    assert th.equal(clamped.rewards, raw.rewards.clamp(-c, c))
+    for j in range(3):
+        if clamped.outcome[j] != 4:  # not cut at the deadline: the discounted sum of the clamped rewards
+            n = int(clamped.length[j])
+            expected = float((clamped.rewards[j, :n].numpy() * model.gamma ** np.arange(n)).sum())
+            assert clamped.returns[j] == pytest.approx(expected, rel=1e-5, abs=1e-6)
+
+
 # ----------------------------------------------------------------------------- validation
 @pytest.mark.parametrize("name, setting, value", [
     ("spiced", "kl_coef", -0.1), ("spiced", "kl_direction", "sideways"), ("spiced", "reference_epochs", 0),

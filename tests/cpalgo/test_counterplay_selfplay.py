@@ -91,6 +91,28 @@ def test_factual_replay_with_main_draws_reproduces_the_rollout(device):
     assert not np.array_equal(other.actions[0][: n - root], result.actions[0][: n - root])
 
 
+def test_branch_rewards_are_clamped_as_the_rollouts_are():
+    """With ``clip_reward`` a branch's focal rewards (selection by return, PPO on recoveries)
+    are the learner's clamped rewards: a replay of the rollout gets the buffer's rewards."""
+    env = make_env()
+    c = 0.01
+    model = make_model(env, max_searches=0, clip_reward=c)
+    n = 20
+    _, callback = model._setup_learn(n * env.num_envs, None)
+    callback.on_training_start(locals(), globals())
+    first_episode = model._driver.roots.episode.copy()
+    assert model.collect_rollouts(env, callback, model.rollout_buffer, n_rollout_steps=n)
+    w = int(np.flatnonzero(model._driver.roots.episode == first_episode)[0])
+    root = 5
+    result = model.replay_root(w, root)
+    alive = result.focal_alive[0, : n - root].numpy()
+    assert alive.any()
+    replayed = result.focal_rewards[0, : n - root].numpy()[alive]
+    recorded = model.rollout_buffer.rewards[root:n, w * env.max_agents][alive]
+    np.testing.assert_allclose(replayed, recorded, atol=1e-7)
+    assert np.abs(replayed).max() == pytest.approx(c)  # the clamp bites
+
+
 def test_searches_respect_the_branch_cap_and_are_logged(tmp_path):
     env = make_env(1)
     model = make_model(env, branch_cap=3.0, verify=True)
