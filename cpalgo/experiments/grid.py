@@ -24,6 +24,7 @@ A grid file is YAML (``zoo/experiments/paper_small.yml`` is the reference)::
       pool: procedural                  # or a folder of WOMD files
       seed: 0
       traffic_policy: null              # co-player checkpoint (default: the anchor)
+      ppo_policy: null                  # selfplay regime's PPO co-player (default: zoo/ppo_traffic.zip)
       coplayers: vehicles               # who follows the regime: vehicles (BehaviorBench) or controllable
       max_worlds: 256
 
@@ -53,7 +54,7 @@ _TOP_KEYS = ("name", "anchor", "recipe", "budget", "seeds", "methods", "override
              "method_settings", "checkpoint_every", "torch_threads", "device", "resources", "evaluation",
              "description")
 _EVAL_KEYS = ("tasks", "splits", "regimes", "deployments", "pool", "pool_size", "seed", "traffic_policy",
-              "bc_policy", "coplayers", "max_worlds", "max_agents", "sim_config")
+              "bc_policy", "ppo_policy", "coplayers", "max_worlds", "max_agents", "sim_config")
 _RESOURCE_KEYS = ("num_cpus", "num_gpus", "memory")
 
 
@@ -93,6 +94,9 @@ class EvalSettings:
             included). Profile names (``normal``, ``halfway``, ``aggressive``, ...).
         pool, pool_size, seed: the evaluation pool (:func:`cpalgo.evaluate.make_tasks`).
         traffic_policy, bc_policy: co-player checkpoints (None: the anchor; the shipped BC model).
+        ppo_policy: the ``selfplay`` regime's PPO co-player checkpoint (None: the evaluator's
+            default ``zoo/ppo_traffic.zip`` when it acts in the evaluation's dynamics, else the
+            traffic policy under p_train conditions, with a warning).
         coplayers: who follows the regime (``EvalConfig.coplayers``): ``vehicles`` (every
             vehicle present at t0, BehaviorBench) or ``controllable`` (the earlier rule).
         max_worlds, max_agents: simulator size of the evaluator.
@@ -109,6 +113,7 @@ class EvalSettings:
     seed: int = 0
     traffic_policy: str | None = None
     bc_policy: str | None = None
+    ppo_policy: str | None = None
     coplayers: str = "vehicles"
     max_worlds: int = 256
     max_agents: int | None = None
@@ -178,10 +183,12 @@ class GridConfig:
             "recipe_sha1": hashlib.sha1(Path(self.recipe).read_bytes()).hexdigest(),
             "budget": self.budget, "overrides": _jsonable(self.overrides), "env": _jsonable(self.env),
             "worlds": self.worlds, "method_settings": _jsonable(self.method_settings),
-            # coplayers: controllable was the only rule before the setting existed; leaving it
-            # out keeps those grids' folders resumable
+            # coplayers: controllable was the only rule before the setting existed, and no
+            # ppo_policy the only choice before that one; leaving them out keeps those grids'
+            # folders resumable
             "evaluation": _jsonable({k: v for k, v in dataclasses.asdict(self.evaluation).items()
-                                     if k != "deployments" and not (k == "coplayers" and v == "controllable")}),
+                                     if k != "deployments" and not (k == "coplayers" and v == "controllable")
+                                     and not (k == "ppo_policy" and v is None)}),
         }
 
     def as_dict(self) -> dict[str, Any]:
@@ -462,6 +469,9 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         _existing(traffic, where, "evaluation.traffic_policy", base, "checkpoint"), where, "evaluation.traffic_policy")
     bc = ev.get("bc_policy")
     bc = None if bc is None else _existing(bc, where, "evaluation.bc_policy", base, "checkpoint")
+    ppo = ev.get("ppo_policy")
+    ppo = None if ppo is None else _checkpoint(
+        _existing(ppo, where, "evaluation.ppo_policy", base, "checkpoint"), where, "evaluation.ppo_policy")
     max_agents = ev.get("max_agents")
     coplayers = ev.get("coplayers", "vehicles")
     if coplayers not in ("vehicles", "controllable"):
@@ -480,7 +490,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     evaluation = EvalSettings(
         tasks=tasks, splits=tuple(splits), regimes=regimes, deployments=deployments, pool=pool,
         pool_size=pool_size, seed=_whole(ev.get("seed", 0), where, "evaluation.seed", 0),
-        traffic_policy=traffic, bc_policy=bc, coplayers=coplayers,
+        traffic_policy=traffic, bc_policy=bc, ppo_policy=ppo, coplayers=coplayers,
         max_worlds=_whole(ev.get("max_worlds", 256), where, "evaluation.max_worlds", 1),
         max_agents=None if max_agents is None else _whole(max_agents, where, "evaluation.max_agents", 1),
         sim_config=sim_config,

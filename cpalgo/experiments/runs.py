@@ -329,7 +329,7 @@ def _evaluator(grid: GridConfig, deployment: str) -> Any:
                             coplayers=e.coplayers)
         # every run starts from the anchor: its action set gives the evaluation's dynamics
         ev = Evaluator(tasks, e.regimes, traffic_policy=e.traffic_policy or grid.anchor, bc_policy=e.bc_policy,
-                       config=config, sim_config=dict(e.sim_config) if e.sim_config else None,
+                       ppo_policy=e.ppo_policy, config=config, sim_config=dict(e.sim_config) if e.sim_config else None,
                        policies={"anchor": grid.anchor})
         while len(_EVALUATORS) >= 3:
             _EVALUATORS.pop(next(iter(_EVALUATORS)))

@@ -197,6 +197,23 @@ def test_shipped_paper_grid_is_valid_and_holds_every_method():
                                                                "distill-cautious", "counterplay"}
 
 
+def test_grid_ppo_policy_drives_the_selfplay_regime(files, tmp_path):
+    """``evaluation.ppo_policy``: the selfplay regime's co-player (a classic one for a classic
+    anchor, the shipped one being jerk); it reaches the fingerprint only when set, so the
+    folders of grids without it still resume."""
+    from cpalgo.experiments.runs import _evaluator
+
+    ev = {**grid_doc(files)["evaluation"], "regimes": ["selfplay"], "ppo_policy": files["anchor"]}
+    grid = load_grid(grid_doc(files, evaluation=ev))
+    assert grid.evaluation.ppo_policy == files["anchor"]
+    assert grid.run_fingerprint()["evaluation"]["ppo_policy"] == files["anchor"]
+    assert "ppo_policy" not in load_grid(grid_doc(files)).run_fingerprint()["evaluation"]
+    evaluator = _evaluator(grid, "normal")
+    assert evaluator.ppo_policy.policy.lstm_actor.hidden_size == 16  # the tiny anchor, not zoo/ppo_traffic.zip
+    with pytest.raises(GridError, match="evaluation.ppo_policy: no such checkpoint"):
+        load_grid(grid_doc(files, evaluation={**ev, "ppo_policy": str(tmp_path / "missing.zip")}))
+
+
 def test_coplayer_rule_defaults_to_vehicles_and_reaches_the_fingerprint(files):
     """``evaluation.coplayers``: BehaviorBench's ``vehicles`` by default; ``controllable`` (the
     only rule before the setting existed) leaves the fingerprint as it was, so older folders
