@@ -45,6 +45,25 @@ def test_shipped_recipes_parse():
     assert same == {k: v for k, v in anchor.algo_kwargs.items() if k != "learning_rate"}
 
 
+def test_selfplay_post_training_recipe_is_its_anchors_setup():
+    """zoo/counterplay_selfplay.yml post-trains the self-play anchor with its network, env and
+    return (gamma, GAE, reward clamp), the paper's learning rate and zoo/counterplay.yml's
+    sizes and CounterPlay settings."""
+    anchor = load_recipe(ZOO_DIR / "anchor_selfplay.yml")
+    post = load_recipe(ZOO_DIR / "counterplay_selfplay.yml")
+    flat = load_recipe(ZOO_DIR / "counterplay.yml")
+    assert post.policy == anchor.policy == "BehaviorLstmPolicy"
+    assert post.algo_kwargs["policy_kwargs"] == anchor.algo_kwargs["policy_kwargs"]
+    for key in ("gamma", "gae_lambda", "clip_reward"):
+        assert post.algo_kwargs[key] == anchor.algo_kwargs[key], key
+    for key in ("dynamics", "max_agents", "condition"):
+        assert post.env_kwargs[key] == anchor.env_kwargs[key], key
+    assert post.algo_kwargs["learning_rate"] == flat.algo_kwargs["learning_rate"]  # cosine(3e-5)
+    same = {k: v for k, v in flat.algo_kwargs.items() if k not in ("gamma", "policy_kwargs")}
+    assert {k: post.algo_kwargs[k] for k in same} == same
+    assert post.n_envs == flat.n_envs and post.env_kwargs["num_scenarios"] == flat.env_kwargs["num_scenarios"]
+
+
 @pytest.mark.parametrize("text, match", [
     ("[1, 2", "not valid YAML"),
     ("other-env: {policy: x, n_envs: 1, n_timesteps: 1}", "no entry"),
@@ -260,7 +279,7 @@ def test_zoo_train_names_a_misspelled_recipe_key_before_rl_zoo3_starts(tmp_path,
     algos = {**rl_zoo3.ALGOS, "counterplay": CounterPlay}
     for name, algo in (("anchor.yml", "ppo_lstm"), ("anchor_finetune.yml", "ppo_lstm"), ("anchor_teacher.yml", "ppo_lstm"),
                        ("ppo_traffic.yml", "ppo_lstm"), ("counterplay.yml", "counterplay"),
-                       ("counterplay_fast.yml", "counterplay")):
+                       ("counterplay_fast.yml", "counterplay"), ("counterplay_selfplay.yml", "counterplay")):
         zoo.check_train_recipe(["--algo", algo, "--env", SELFPLAY_ENV_ID, "--conf-file", str(ZOO_DIR / name),
                                 "-params", "n_epochs:2"], algos)
 

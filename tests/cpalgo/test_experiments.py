@@ -197,6 +197,23 @@ def test_shipped_paper_grid_is_valid_and_holds_every_method():
                                                                "distill-cautious", "counterplay"}
 
 
+def test_selfplay_paper_grids_hold_every_method_on_the_selfplay_recipe(files):
+    """zoo/experiments/paper_selfplay*.yml: every method x 3 seeds at 1 % and 5 % of a 200M
+    anchor, 100 tasks per split, all regimes, paper_small's deployments, from
+    zoo/counterplay_selfplay.yml (a tiny anchor in place of the training run's checkpoint)."""
+    from cpalgo.experiments.grid import resolve_grid_path
+    from cpalgo.methods import method_names
+
+    small = load_grid("zoo/experiments/paper_small.yml")
+    for name, budget in (("paper_selfplay", 2_000_000), ("paper_selfplay_5pct", 10_000_000)):
+        doc = yaml.safe_load(open(resolve_grid_path(f"zoo/experiments/{name}.yml"), encoding="utf-8"))
+        grid = load_grid({**doc, "anchor": files["anchor"]})
+        assert grid.budget == budget and grid.seeds == (0, 1, 2) and set(grid.methods) == set(method_names())
+        assert grid.recipe.endswith("counterplay_selfplay.yml")
+        assert grid.evaluation.tasks == 100 and len(grid.evaluation.regimes) == 8
+        assert dict(grid.evaluation.deployments) == dict(small.evaluation.deployments)
+
+
 def test_grid_ppo_policy_drives_the_selfplay_regime(files, tmp_path):
     """``evaluation.ppo_policy``: the selfplay regime's co-player (a classic one for a classic
     anchor, the shipped one being jerk); it reaches the fingerprint only when set, so the
