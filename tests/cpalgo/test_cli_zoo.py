@@ -314,12 +314,34 @@ def test_outcomes_command_evaluates_the_tracking_expert(capsys, tmp_path):
     (["post-train", "--config", "missing.yml"], "no such file 'missing.yml'"),
     (["pool", "--n", "2.7"], "expected a whole number, got '2.7'"),
     (["run", "--timesteps", "0"], "must be >= 1"),
+    (["run", "--anchor", "nope.zip"], "no such file 'nope.zip'"),
+    (["run", "--config", "missing.yml"], "no such file 'missing.yml'"),
     (["outcomes", "--model", "nope.zip", "--tasks", "1"], "does not exist"),
     (["train-anchor", "--init", "nope.zip"], "no such file 'nope.zip'"),
     (["pool", "--seed", "-1", "--n", "2"], "--seed: must be >= 0"),
 ])
 def test_cli_errors_exit_2_without_a_traceback(capsys, argv, message):
     assert message in usage_error(capsys, argv)
+
+
+def test_run_takes_the_anchor_and_recipe(monkeypatch):
+    """``counterplay run --anchor --config``: the main job from another anchor (the self-play one)."""
+    import cpalgo.experiments.mainjob as mainjob
+
+    seen = {}
+
+    def fake(**kwargs):
+        seen.update(kwargs)
+        return {"markdown": "", "wall_s": 0.0}
+
+    monkeypatch.setattr(mainjob, "run_main_job", fake)
+    assert cli.main(["run", "--anchor", "zoo/anchor_fast.zip", "--config", "zoo/counterplay_selfplay.yml",
+                     "--no-progress"]) == 0
+    assert seen["anchor"] == resolve_path("zoo/anchor_fast.zip")
+    assert seen["config"] == resolve_path("zoo/counterplay_selfplay.yml")
+    assert cli.main(["run", "--no-progress"]) == 0  # the defaults: the shipped anchor and zoo/counterplay.yml
+    assert seen["anchor"] == resolve_path("zoo/anchor.zip")
+    assert seen["config"] == resolve_path("zoo/counterplay.yml")
 
 
 @pytest.mark.parametrize("edit, message", [
