@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import os
 import random
@@ -64,7 +65,15 @@ CURVE_COLUMNS: tuple[str, ...] = (
     + tuple(f"{s}_{o}" for s in STYLES for o in OUTCOMES)
     + ("value_failures", "value_falls", "value_change", "normal_entropy")
     + ("approx_kl", "clip_fraction", "entropy", "value_loss")
+    + tuple(f"value_falls_{o}" for o in OUTCOMES[1:])
+    + tuple(f"{split}_{m}" for split in ("interactive", "random") for m in ("score", "completion", "at_fault",
+                                                                           "timeout"))
 )
+#: tasks per split of the curve's evaluator columns: the designated ego of BehaviorBench-style
+#: Interactive and Random tasks (``cpalgo.evaluate.make_tasks``, task set 0), normal deployment,
+#: the model itself as normal-profile traffic. The all-agent columns above average over easy
+#: agents; a drift into waiting in the interactive tasks shows here first.
+EGO_TASKS = 100
 #: PPO update statistics averaged over a segment's updates: logger key -> curve column
 #: (``entropy`` is the mean policy entropy over the trained decisions, in nats)
 UPDATE_STATS: dict[str, str] = {"train/approx_kl": "approx_kl", "train/clip_fraction": "clip_fraction",
@@ -330,7 +339,31 @@ def _evaluate(model: Any, recipe: Any, tasks: Sequence[Any]) -> dict[str, float]
                                   max_agents=int(recipe.env_kwargs.get("max_agents", 8)), config=config or None)
     row.update(value_failures=trend.failures, value_falls=trend.falls, value_change=trend.mean_change,
                normal_entropy=_first_step_entropy(model, tasks, recipe, config))
+    row.update({f"value_falls_{o}": trend.per_outcome[o]["falls"] for o in OUTCOMES[1:]})
+    row.update(_ego_columns(model, min(EGO_TASKS, len(tasks))))
     return row
+
+
+@functools.lru_cache(maxsize=2)
+def _ego_tasks(n: int) -> tuple[Any, ...]:
+    from cpalgo.evaluate.runner import make_tasks
+
+    return tuple(make_tasks("procedural", "both", n=n, seed=0))
+
+
+def _ego_columns(model: Any, n: int) -> dict[str, float]:
+    """The evaluator's view (:data:`EGO_TASKS`): score, completion, at-fault collision and
+    timeout rates of the designated ego per split, the model as its own normal traffic."""
+    from cpalgo.evaluate.runner import evaluate
+
+    summary = evaluate(model, list(_ego_tasks(n)), regimes=("normal",), deploy_condition="normal",
+                       traffic_policy=model, label="anchor", progress=False).summary()
+    out: dict[str, float] = {}
+    for split in ("interactive", "random"):
+        m = summary[split]["normal"]
+        out.update({f"{split}_score": m["score"], f"{split}_completion": m["completion"],
+                    f"{split}_at_fault": m["at_fault_collision"], f"{split}_timeout": m["timeout"]})
+    return out
 
 
 def _first_step_entropy(model: Any, tasks: Sequence[Any], recipe: Any, config: dict[str, Any]) -> float:
@@ -382,14 +415,17 @@ def curve_table(rows: Sequence[dict[str, float]], every: int = 1) -> str:
         return " / ".join(f"{100 * r[k]:.1f}" if k in r else "-" for k in keys)
 
     lines = ["| transitions | training wall (s) | train goal / collision / off-road / timeout | held-out goal "
-             "aggr / normal / caut | held-out normal collision / off-road / timeout | first-decision entropy "
-             "(nats) | critic EV |", "|---|---|---|---|---|---|---|"]
+             "aggr / normal / caut | held-out normal collision / off-road / timeout | ego completion / at-fault / "
+             "timeout, Interactive | same, Random | first-decision entropy (nats) | critic EV |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in picked:
         entropy = f"{r['normal_entropy']:.2f}" if "normal_entropy" in r else "-"
         lines.append(f"| {r['timesteps'] / 1e6:.1f}M | {r['wall_s']:,.0f} | "
                      f"{pct(r, 'train_goal', 'train_collision', 'train_offroad', 'train_timeout')} | "
                      f"{pct(r, 'aggressive_goal', 'normal_goal', 'cautious_goal')} | "
-                     f"{pct(r, 'normal_collision', 'normal_offroad', 'normal_timeout')} | {entropy} | "
+                     f"{pct(r, 'normal_collision', 'normal_offroad', 'normal_timeout')} | "
+                     f"{pct(r, 'interactive_completion', 'interactive_at_fault', 'interactive_timeout')} | "
+                     f"{pct(r, 'random_completion', 'random_at_fault', 'random_timeout')} | {entropy} | "
                      f"{r.get('explained_variance', float('nan')):.2f} |")
     return "\n".join(lines)
 
@@ -413,6 +449,10 @@ def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None)
     for style, color in zip(STYLES, ("tab:red", "tab:blue", "tab:green")):
         axes[0].plot(x, [100 * r[f"{style}_goal"] for r in rows], marker="o", ms=3, color=color, label=style)
     axes[0].plot(x, [100 * r["train_goal"] for r in rows], ls="--", color="gray", label="training (p_train)")
+    for split, ls in (("interactive", ":"), ("random", "-.")):
+        if any(f"{split}_completion" in r for r in rows):
+            axes[0].plot(x, [100 * r.get(f"{split}_completion", np.nan) for r in rows], ls=ls, marker="^", ms=3,
+                         color="black", label=f"ego completion, {split} (normal)")
     axes[0].set(title="goal rate, held-out tasks", xlabel="transitions (M)", ylabel="%")
     axes[0].legend(fontsize=8)
     for o, color in zip(OUTCOMES[1:], ("tab:red", "tab:orange", "tab:purple")):
@@ -627,7 +667,10 @@ def _held_out_line(row: dict[str, Any]) -> str:
     return (f"held-out goal aggr/normal/caut {row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / "
             f"{row['cautious_goal']:.1%}, normal collision {row['normal_collision']:.1%} off-road "
             f"{row['normal_offroad']:.1%} timeout {row['normal_timeout']:.1%}, first-decision entropy "
-            f"{row['normal_entropy']:.2f}, value falls {row['value_falls']:.0%} of {row['value_failures']} failures")
+            f"{row['normal_entropy']:.2f}, value falls {row['value_falls']:.0%} of {row['value_failures']} failures; "
+            f"ego completion / at-fault / timeout Interactive {row['interactive_completion']:.0%} / "
+            f"{row['interactive_at_fault']:.0%} / {row['interactive_timeout']:.0%}, Random "
+            f"{row['random_completion']:.0%} / {row['random_at_fault']:.0%} / {row['random_timeout']:.0%}")
 
 
 def _save(model: Any, run_dir: Path, state: dict[str, Any]) -> None:
