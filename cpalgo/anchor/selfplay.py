@@ -81,7 +81,8 @@ UPDATE_STATS: dict[str, str] = {"train/approx_kl": "approx_kl", "train/clip_frac
 #: PPO settings a resumed piece may change (``--set KEY=VALUE``): each value is parsed as the
 #: recipe parses it, applied to the loaded model and recorded in ``run.json`` under "changes"
 #: with the segment and transition count it applies from; the checkpoints then carry it.
-CHANGEABLE: tuple[str, ...] = ("learning_rate", "ent_coef", "vf_coef", "clip_range", "max_grad_norm", "n_epochs")
+CHANGEABLE: tuple[str, ...] = ("learning_rate", "ent_coef", "vf_coef", "clip_range", "max_grad_norm", "n_epochs",
+                                "gamma", "gae_lambda")
 #: ``SelfPlayVecEnv`` settings a resumed piece may change, with their parsers: unlike the PPO
 #: settings (carried by the checkpoint) they live in ``run.json``'s "changes" only, and every
 #: later piece applies them when it builds its envs (:func:`env_changes`).
@@ -531,8 +532,9 @@ def parse_changes(items: Sequence[str]) -> dict[str, Any]:
                 value = float(text)
             except ValueError:
                 raise ValueError(f"set: {key} must be a number, got {text!r}") from None
-            if not np.isfinite(value) or value < 0 or (key == "eval_task_share" and value > 1):
-                bound = "in [0, 1]" if key == "eval_task_share" else ">= 0"
+            unit = key in ("eval_task_share", "gamma", "gae_lambda")
+            if not np.isfinite(value) or value < 0 or (unit and value > 1):
+                bound = "in [0, 1]" if unit else ">= 0"
                 raise ValueError(f"set: {key} must be a finite number {bound}, got {text!r}")
             changes[key] = value
     return changes
@@ -574,6 +576,8 @@ def _apply_changes(model: Any, changes: dict[str, Any]) -> None:
             model.clip_range = get_schedule_fn(parse_schedule(value, key))
         else:
             setattr(model, key, value)
+            if key in ("gamma", "gae_lambda"):  # the buffer computes the returns with its own copy
+                setattr(model.rollout_buffer, key, value)
 
 
 def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | None = None, *,

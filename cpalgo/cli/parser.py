@@ -238,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     ta.add_argument("--resume", default=None, metavar="RUN_DIR",
                     help="continue the run in RUN_DIR from its last checkpoint (settings from its run.json)")
     ta.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="with --resume: change a setting from this piece on: PPO (learning_rate, ent_coef, vf_coef, "
+                    help="with --resume: change a setting from this piece on: PPO (learning_rate, ent_coef, vf_coef, gamma, gae_lambda, "
                          "clip_range, max_grad_norm, n_epochs; schedules as in a recipe, e.g. "
                          "learning_rate=cosine(3e-3)), env (timeout_terminal=true|false, eval_task_share=S) or "
                          "threads=N; recorded in the run's run.json and kept by later pieces; repeatable")

@@ -134,8 +134,9 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     run = tmp_path / "run"
     train_anchor_run(run, _settings(recipe), stop_after_s=0.0, log=_quiet, worker=False)
     model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, worker=False,
-                             changes=["ent_coef=0.03", "learning_rate=cosine(2e-3)", "n_epochs=2"])
+                             changes=["ent_coef=0.03", "learning_rate=cosine(2e-3)", "n_epochs=2", "gamma=0.995"])
     assert model.ent_coef == 0.03 and model.n_epochs == 2
+    assert model.gamma == 0.995 and model.rollout_buffer.gamma == 0.995  # the returns use it
     rows = read_curve(run)
     # the new cosine, over the same whole budget: 2e-3 at the start, 1e-3 half way
     assert model.lr_schedule(1.0) == pytest.approx(2e-3) and model.lr_schedule(0.5) == pytest.approx(1e-3)
@@ -145,14 +146,17 @@ def test_a_resumed_piece_changes_ppo_settings_and_records_them(tmp_path: Path, r
     assert rows[1]["learning_rate"] == pytest.approx(CosineSchedule(2e-3)(1 - rows[1]["timesteps"] / 300), rel=1e-6)
     doc = json.loads((run / "run.json").read_text())
     assert doc["changes"] == [{"segment": 1, "timesteps": int(rows[0]["timesteps"]),
-                               "set": {"ent_coef": 0.03, "learning_rate": "cosine(2e-3)", "n_epochs": 2}}]
+                               "set": {"ent_coef": 0.03, "learning_rate": "cosine(2e-3)", "n_epochs": 2,
+                                       "gamma": 0.995}}]
     # the checkpoint carries the change into the next piece
     model = train_anchor_run(run, resume=True, stop_after_s=0.0, log=_quiet, worker=False)
     assert model.ent_coef == 0.03 and model.n_epochs == 2
+    assert model.gamma == 0.995 and model.rollout_buffer.gamma == 0.995
 
-    for bad, match in ((["gamma=0.9"], "'gamma' cannot be changed"), (["ent_coef"], "KEY=VALUE"),
+    for bad, match in ((["batch_size=64"], "'batch_size' cannot be changed"), (["ent_coef"], "KEY=VALUE"),
                        (["ent_coef=-1"], "ent_coef must be a finite number >= 0"),
-                       (["learning_rate=fast"], "learning_rate"), (["n_epochs=0.5"], "n_epochs")):
+                       (["learning_rate=fast"], "learning_rate"), (["n_epochs=0.5"], "n_epochs"),
+                       (["gamma=1.5"], r"gamma must be a finite number in \[0, 1\]")):
         with pytest.raises(ValueError, match=match):
             train_anchor_run(run, resume=True, log=_quiet, changes=bad)
     with pytest.raises(ValueError, match="only in a resumed run"):
