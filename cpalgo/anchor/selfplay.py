@@ -448,8 +448,8 @@ def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None)
     x = np.array([r["timesteps"] for r in rows]) / 1e6
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     for style, color in zip(STYLES, ("tab:red", "tab:blue", "tab:green")):
-        axes[0].plot(x, [100 * r[f"{style}_goal"] for r in rows], marker="o", ms=3, color=color, label=style)
-    axes[0].plot(x, [100 * r["train_goal"] for r in rows], ls="--", color="gray", label="training (p_train)")
+        axes[0].plot(x, [100 * r.get(f"{style}_goal", np.nan) for r in rows], marker="o", ms=3, color=color, label=style)
+    axes[0].plot(x, [100 * r.get("train_goal", np.nan) for r in rows], ls="--", color="gray", label="training (p_train)")
     for split, ls in (("interactive", ":"), ("random", "-.")):
         if any(f"{split}_completion" in r for r in rows):
             axes[0].plot(x, [100 * r.get(f"{split}_completion", np.nan) for r in rows], ls=ls, marker="^", ms=3,
@@ -457,7 +457,7 @@ def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None)
     axes[0].set(title="goal rate, held-out tasks", xlabel="transitions (M)", ylabel="%")
     axes[0].legend(fontsize=8)
     for o, color in zip(OUTCOMES[1:], ("tab:red", "tab:orange", "tab:purple")):
-        axes[1].plot(x, [100 * r[f"normal_{o}"] for r in rows], marker="o", ms=3, color=color, label=o)
+        axes[1].plot(x, [100 * r.get(f"normal_{o}", np.nan) for r in rows], marker="o", ms=3, color=color, label=o)
     axes[1].set(title="normal style: failures", xlabel="transitions (M)", ylabel="%")
     axes[1].legend(fontsize=8)
     axes[2].plot(x, [r.get("explained_variance", np.nan) for r in rows], marker="o", ms=3,

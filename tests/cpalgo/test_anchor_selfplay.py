@@ -111,6 +111,12 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
     assert f"{100 * rows[-1]['normal_goal']:.1f}" in table[-1]
     png = plot_curve(tmp_path / "whole")
     assert png.is_file() and png.stat().st_size > 1000
+    # while a piece runs, its last row waits for the worker's evaluation: plot and table still draw
+    partial = {k: rows[-1][k] for k in ("segment", "timesteps", "wall_s", "train_goal")}
+    (tmp_path / "partial").mkdir()
+    selfplay._write_curve(tmp_path / "partial", [*rows, partial])
+    assert plot_curve(tmp_path / "partial").is_file()
+    assert "| - / - / - |" in selfplay.curve_table(read_curve(tmp_path / "partial")).splitlines()[-1]
 
 
 def test_run_folder_errors_name_the_folder(tmp_path: Path, recipe: str):
