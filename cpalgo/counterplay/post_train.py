@@ -13,8 +13,9 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
+from cpalgo.common.anchor_network import anchor_network
 from cpalgo.common.checks import UsageError, brief, check_out_path
-from cpalgo.common.recipe_setup import anchor_network, check_algorithm_arguments, make_env
+from cpalgo.common.recipe_setup import check_algorithm_arguments, make_env
 from cpalgo.evaluate.held_out import held_out_outcomes
 from cpalgo.recipes import load_recipe, resolve_path
 

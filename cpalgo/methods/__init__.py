@@ -198,7 +198,7 @@ def build_method(name: str, anchor: str | os.PathLike, env: Any, *, policy: str 
 
     Args:
         anchor: SB3 checkpoint; the model gets its network (policy class and
-            ``policy_kwargs``, :func:`cpalgo.common.recipe_setup.anchor_network`), and a
+            ``policy_kwargs``, :func:`cpalgo.common.anchor_network.anchor_network`), and a
             ``policy`` / ``algo_kwargs["policy_kwargs"]`` that differ print one warning line.
         env: the self-play VecEnv (e.g. :class:`cpsim.SelfPlayVecEnv`, possibly wrapped).
         algo_kwargs: the recipe's algorithm arguments (PPO settings, policy_kwargs, ...).
@@ -223,7 +223,7 @@ def build_method(name: str, anchor: str | os.PathLike, env: Any, *, policy: str 
     anchor = resolve_path(anchor)  # zoo/anchor.zip names the shipped file from any folder
     if not os.path.isfile(anchor):
         raise ValueError(f"anchor: no such checkpoint {anchor!r}")
-    from cpalgo.common.recipe_setup import anchor_network
+    from cpalgo.common.anchor_network import anchor_network
 
     policy, kwargs, note = anchor_network(anchor, policy, kwargs, getattr(cls, "policy_aliases", {}))
     if note is not None:
