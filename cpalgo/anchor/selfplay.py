@@ -540,21 +540,24 @@ def parse_changes(items: Sequence[str]) -> dict[str, Any]:
     return changes
 
 
-def env_changes(doc: dict[str, Any]) -> dict[str, Any]:
-    """The :data:`ENV_CHANGEABLE` settings recorded in a ``run.json`` document's "changes",
-    later entries over earlier ones: what every env of the run's next pieces is built with."""
+def _recorded(doc: dict[str, Any], keys: Sequence[str]) -> dict[str, Any]:
+    """The values of ``keys`` recorded in a ``run.json`` document's "changes", later entries
+    over earlier ones."""
     merged: dict[str, Any] = {}
     for entry in doc.get("changes", []):
-        merged.update({k: v for k, v in entry.get("set", {}).items() if k in ENV_CHANGEABLE})
+        merged.update({k: v for k, v in entry.get("set", {}).items() if k in keys})
     return merged
+
+
+def env_changes(doc: dict[str, Any]) -> dict[str, Any]:
+    """The :data:`ENV_CHANGEABLE` settings recorded in a ``run.json`` document: what every env
+    of the run's next pieces is built with."""
+    return _recorded(doc, ENV_CHANGEABLE)
 
 
 def _run_changes(settings: "AnchorRunSettings", doc: dict[str, Any]) -> "AnchorRunSettings":
     """``settings`` with the :data:`RUN_CHANGEABLE` values recorded in ``doc``'s "changes"."""
-    merged: dict[str, Any] = {}
-    for entry in doc.get("changes", []):
-        merged.update({k: v for k, v in entry.get("set", {}).items() if k in RUN_CHANGEABLE})
-    return dataclasses.replace(settings, **merged) if merged else settings
+    return dataclasses.replace(settings, **_recorded(doc, RUN_CHANGEABLE))
 
 
 def _apply_changes(model: Any, changes: dict[str, Any]) -> None:

@@ -292,18 +292,17 @@ class ContinuationRunner(GrowingSimulator):
         generator: torch generator of the uniforms.
         proxy: co-player actions of ``proxy`` continuations (required when one is run).
         record: keep positions and every agent's actions (tests, inspection).
-        clip_reward: clamp each step's focal reward to [-c, c] before the returns, as the
-            learner's rollouts do (the algorithm's ``clip_reward``; None: no clamp).
+        clip_reward: see :class:`cpalgo.counterplay.branches.GrowingSimulator` (the
+            algorithm's ``clip_reward``).
     """
 
     def __init__(self, make_simulator: Callable[[int], Any], policy: Any, gamma: float,
                  generator: th.Generator | None = None, proxy: ProxyFn | None = None, record: bool = True,
                  clip_reward: float | None = None) -> None:
-        super().__init__(make_simulator, policy, generator)
+        super().__init__(make_simulator, policy, generator, clip_reward)
         self.gamma = float(gamma)
         self.proxy = proxy
         self.record = bool(record)
-        self.clip_reward = clip_reward
 
     @th.no_grad()
     def run(self, jobs: Sequence[GroupJob]) -> list[GroupResult]:
@@ -429,10 +428,7 @@ class ContinuationRunner(GrowingSimulator):
             if self.record:
                 all_actions[:, t] = np.where(deciding[:n_used], actions[:n_used], -1)
             sim.step(actions)
-            reward = sim.reward.to(device)[rows_u, focal].float()
-            if self.clip_reward is not None:
-                reward = reward.clamp(-self.clip_reward, self.clip_reward)
-            f_rewards[:, t] = reward * f_dec
+            f_rewards[:, t] = self.focal_reward(sim, rows_u, focal, device) * f_dec
         else:
             if self.record:
                 xy[:, t_max] = _np(sim.xy)[:n_used]

@@ -106,14 +106,22 @@ class GrowingSimulator:
     """Owns a second simulator built by ``make_simulator`` and grown by doubling, the frozen
     ``policy`` its worlds run and the torch ``generator`` of their fresh uniforms (seeded 0
     when None): the common part of :class:`BranchRunner` and the baselines'
-    ``ContinuationRunner``."""
+    ``ContinuationRunner``. ``clip_reward``: clamp each step's focal reward to [-c, c], as
+    the learner's rollouts do (the algorithm's ``clip_reward``; None: no clamp)."""
 
-    def __init__(self, make_simulator: Callable[[int], Any], policy: Any, generator: th.Generator | None = None) -> None:
+    def __init__(self, make_simulator: Callable[[int], Any], policy: Any, generator: th.Generator | None = None,
+                 clip_reward: float | None = None) -> None:
         self.make_simulator = make_simulator
         self.policy = policy
         self.generator = generator if generator is not None else th.Generator().manual_seed(0)
+        self.clip_reward = clip_reward
         self._sim: Any = None
         self._capacity = 0
+
+    def focal_reward(self, sim: Any, rows: th.Tensor, focal: th.Tensor, device: Any) -> th.Tensor:
+        """The last step's reward of each world's focal agent, clamped as the rollouts are."""
+        reward = sim.reward.to(device)[rows, focal].float()
+        return reward if self.clip_reward is None else reward.clamp(-self.clip_reward, self.clip_reward)
 
     def simulator(self, num_worlds: int) -> Any:
         """A branch simulator with at least ``num_worlds`` worlds (grown by doubling)."""
@@ -143,8 +151,7 @@ class BranchRunner(GrowingSimulator):
         obs_transform: maps raw simulator observations (N, D) to policy input, e.g.
             ``VecNormalize.normalize_obs``; identity by default.
         generator: torch generator of the fresh uniforms.
-        clip_reward: clamp each step's focal reward to [-c, c], as the learner's rollouts do
-            (CounterPlay's ``clip_reward``; None: no clamp).
+        clip_reward: see :class:`GrowingSimulator` (CounterPlay's ``clip_reward``).
     """
 
     def __init__(
@@ -155,9 +162,8 @@ class BranchRunner(GrowingSimulator):
         generator: th.Generator | None = None,
         clip_reward: float | None = None,
     ) -> None:
-        super().__init__(make_simulator, policy, generator)
+        super().__init__(make_simulator, policy, generator, clip_reward)
         self.obs_transform = obs_transform
-        self.clip_reward = clip_reward
 
     # ------------------------------------------------------------------ run
     @th.no_grad()
@@ -251,10 +257,7 @@ class BranchRunner(GrowingSimulator):
                 f_logits[:, t] = logits.reshape(n_worlds, a, -1)[rows_u, focal_t[:n_used]]
 
             sim.step(actions)
-            reward = sim.reward.to(device)[rows_u, focal_t[:n_used]].float()
-            if self.clip_reward is not None:
-                reward = reward.clamp(-self.clip_reward, self.clip_reward)
-            f_rewards[:, t] = reward * f_dec
+            f_rewards[:, t] = self.focal_reward(sim, rows_u, focal_t[:n_used], device) * f_dec
         else:
             xy[:, t_max] = sim.xy.to(device)[:n_used]
         all_actions = all_actions.cpu().numpy()
