@@ -127,7 +127,7 @@ def make_tasks(pool: str | os.PathLike | Sequence[Any] = "procedural", split: st
         pool: ``"procedural"`` (``cpsim.scenario.eval_pool(pool_size, seed)``, disjoint
             from the training seeds; only the scenes whose ego log reaches its goal,
             ``cpsim.scenario.ego_log_reaches_goal``, become tasks, as every BehaviorBench
-            goal is its log's final position), a folder of WOMD ``.json`` / ``.json.gz`` / ``.npz``
+            goal lies on its log), a folder of WOMD ``.json`` / ``.json.gz`` / ``.npz``
             files (one task per ``tracks_to_predict`` vehicle, ``cpsim.scenario.track_tasks``;
             Random-N draws among eligible tasks), or a list of scenarios (tasks as given).
         split: ``interactive``, ``random`` or ``both``.

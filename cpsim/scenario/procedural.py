@@ -44,9 +44,14 @@ Families (right-hand traffic; every scene is rotated by a random angle about the
 Traffic around the ego: 1-3 agents on routes that cross or join the ego's, present from
 step 0 and timed to reach the conflict at about the ego's time (parked: to leave the bypass
 a little before the ego reaches it); the other agents use the other routes (some entering
-later at the map border). The ego's goal lies past its conflict zones (at most 25 m past the
-first one; 12 m in roundabouts; parked: past the last parked vehicle) unless its log goes
-further.
+later at the map border). The ego's task runs through its conflict zones (at most 25 m past
+the first one; 12 m in roundabouts; parked: past the last parked vehicle), and a scene whose
+logged ego gets that far is preferred. Its goal is then where that log was
+:data:`EGO_GOAL_SLACK` s before the log ends, but at least 5 m past its first conflict zone
+(parked: past the last parked vehicle); when the log falls short, the goal lies further along
+the route. It is not the log's end because the log drives at the rule driver's pace, and
+a task that demands exactly that pace leaves an ego that yields to its conflict partner no
+time to finish, so every wait would end in a timeout.
 
 Road polylines are ordered lanes first, so lane ``k`` of a route is road polyline ``k``
 (:attr:`ProceduralScene.routes`). ``ROAD_EDGE`` polylines bound the drivable area and
@@ -66,7 +71,7 @@ from typing import Callable
 
 import numpy as np
 
-from cpsim.scenario.datatypes import AgentType, RoadType, Scenario
+from cpsim.scenario.datatypes import DT, AgentType, RoadType, Scenario
 from cpsim.scenario.driver import (
     AgentPlan,
     DriveResult,
@@ -92,6 +97,7 @@ from cpsim.scenario.geometry_utils import (
 __all__ = [
     "FAMILIES", "TRAIN_SEED_RANGE", "EVAL_SEED_RANGE", "EDGE_CLEARANCE", "ProceduralScene",
     "generate", "build", "pool", "train_pool", "eval_pool", "log_collisions", "ego_log_reaches_goal",
+    "EGO_GOAL_SLACK",
 ]
 
 FAMILIES: tuple[str, ...] = ("intersection", "t_junction", "roundabout", "merge", "lane_drop", "parked")
@@ -105,6 +111,9 @@ EDGE_SPACING = 2.0   # road edges, m
 LINE_SPACING = 3.0   # painted lines, m
 INVALID_XY = -10000.0  # WOMD's filler for invalid steps
 _MAX_ATTEMPTS = 12
+#: Time, s, by which the ego's logged drive reaches its goal before the log ends: about what
+#: yielding to a conflict partner costs (the partner's passage, then pulling away again).
+EGO_GOAL_SLACK = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -708,9 +717,13 @@ class _Placer:
         exits = [self.offsets[ego_route][a] + x for a, b, x in
                  zip(self.conflicts.a, self.conflicts.b, self.conflicts.exit_a) if a in own and b not in own]
         self.ego_zone_exit = min(float(max(exits)), first_exit + net.ego_reach) if exits else entry
+        # the goal lies at least 5 m past the first conflict zone, the one its partners are
+        # timed for (_assemble)
+        self.ego_first_exit = min(float(first_exit), self.ego_zone_exit)
         if net.ego_goal_xy is not None:     # the goal test is "5 m past ego_zone_exit"
             poly = self.polys[ego_route]
             self.ego_zone_exit = float(self.cum[ego_route][np.argmin(np.hypot(*(poly - net.ego_goal_xy).T))]) - 5.0
+            self.ego_first_exit = self.ego_zone_exit
         length, width = self.draw_size(ego_route, allow_truck=False)
         s0 = max(entry - rng.uniform(3.0, 18.0) - 0.5 * length, 0.5 * length + 0.5)
         desired = rng.uniform(*self.spec.speed)
@@ -908,13 +921,13 @@ _CLEARING_ATTEMPTS = 12
 
 
 def ego_log_reaches_goal(scenario: Scenario, radius: float = 2.0) -> bool:
-    """Whether the ego's logged final position lies within ``radius`` m of its goal: log
-    replay completes the task. BehaviorBench's goals are the logs' final positions, so this
-    holds for every one of its tasks; the evaluator keeps only such procedural scenes as
-    tasks (:func:`cpalgo.evaluate.runner.make_tasks`)."""
+    """Whether the ego's log passes within ``radius`` m of its goal: log replay completes the
+    task. BehaviorBench's goals are the logs' final positions, so this holds for every one of
+    its tasks; the evaluator keeps only such procedural scenes as tasks
+    (:func:`cpalgo.evaluate.runner.make_tasks`)."""
     e = scenario.ego_index
-    last = int(np.nonzero(scenario.log_valid[e])[0][-1])
-    return bool(np.linalg.norm(scenario.log_xy[e, last] - scenario.goal_xy[e]) <= radius)
+    xy = scenario.log_xy[e][scenario.log_valid[e]]
+    return bool(np.min(np.linalg.norm(xy - scenario.goal_xy[e], axis=1)) <= radius)
 
 
 def _build_once(family: str, seed: int, rng: np.random.Generator, spec: _FamilySpec) -> ProceduralScene:
@@ -940,11 +953,12 @@ def _build_once(family: str, seed: int, rng: np.random.Generator, spec: _FamilyS
     partner_lanes = {lane for i, r in enumerate(plan.routes) if i != ego and not plan.static[i] for lane in r}
     if not any(a in ego_lanes and b in partner_lanes - ego_lanes for a, b in zip(conflicts.a, conflicts.b)):
         raise _Reject("no remaining agent crosses or joins the ego's route")
-    return _assemble(family, seed, rng, net, plan, result, ego, placer.ego_zone_exit, angle)
+    return _assemble(family, seed, rng, net, plan, result, ego, placer.ego_zone_exit, placer.ego_first_exit, angle)
 
 
 def _assemble(family: str, seed: int, rng: np.random.Generator, net: _Net, plan: AgentPlan,
-              result: DriveResult, ego: int, ego_zone_exit: float, angle: float) -> ProceduralScene:
+              result: DriveResult, ego: int, ego_zone_exit: float, ego_first_exit: float,
+              angle: float) -> ProceduralScene:
     n = plan.num_agents
     static = plan.static.astype(bool)
     valid, xy, heading, velocity = result.valid, result.xy, result.heading, result.velocity
@@ -958,6 +972,11 @@ def _assemble(family: str, seed: int, rng: np.random.Generator, net: _Net, plan:
     stop_limit = np.maximum(result.routes.length - 0.5 * plan.length - 1.0, s_last)
     further = np.maximum(s_first + rng.uniform(15.0, 35.0, n), far_enough)
     goal_s = np.where(s_last >= far_enough, s_last, np.minimum(further, stop_limit))
+    if s_last[ego] >= far_enough[ego]:
+        # a log that clears every conflict zone (a scene build() prefers): the ego's goal is
+        # where the log was EGO_GOAL_SLACK s before its end, at least 5 m past its first zone
+        slack_steps = int(round(EGO_GOAL_SLACK / DT))
+        goal_s[ego] = max(min(ego_first_exit + 5.0, s_last[ego]), result.s[ego, -1 - slack_steps])
     goal_xy, _ = result.routes.at(goal_s)
     goal_xy = np.where(static[:, None], xy[:, 0], goal_xy)
     # rotate the whole scene (row vectors: p @ rot turns p by +angle)
