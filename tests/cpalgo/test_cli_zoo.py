@@ -46,20 +46,24 @@ def test_shipped_recipes_parse():
 
 
 def test_selfplay_post_training_recipe_is_its_anchors_setup():
-    """zoo/counterplay_selfplay.yml post-trains the self-play anchor with its network, env and
-    return (gamma, GAE, reward clamp), the paper's learning rate and zoo/counterplay.yml's
-    sizes and CounterPlay settings."""
+    """zoo/counterplay_selfplay.yml post-trains the self-play anchor with its network, env,
+    return (gamma, GAE, reward clamp) and PPO sizes, the paper's learning rate and
+    zoo/counterplay.yml's CounterPlay settings, so that PPO-Continue continues the anchor's
+    own training."""
     anchor = load_recipe(ZOO_DIR / "anchor_selfplay.yml")
     post = load_recipe(ZOO_DIR / "counterplay_selfplay.yml")
     flat = load_recipe(ZOO_DIR / "counterplay.yml")
     assert post.policy == anchor.policy == "BehaviorLstmPolicy"
     assert post.algo_kwargs["policy_kwargs"] == anchor.algo_kwargs["policy_kwargs"]
-    for key in ("gamma", "gae_lambda", "clip_reward"):
+    ppo = ("gamma", "gae_lambda", "clip_reward", "n_epochs", "batch_size", "vf_coef", "max_grad_norm",
+           "normalize_advantage", "clip_range")
+    for key in ppo:
         assert post.algo_kwargs[key] == anchor.algo_kwargs[key], key
+    assert post.algo_kwargs["ent_coef"] == 0.005   # the anchor run's entropy weight from 55M on
     for key in ("dynamics", "max_agents", "condition"):
         assert post.env_kwargs[key] == anchor.env_kwargs[key], key
     assert post.algo_kwargs["learning_rate"] == flat.algo_kwargs["learning_rate"]  # cosine(3e-5)
-    same = {k: v for k, v in flat.algo_kwargs.items() if k not in ("gamma", "policy_kwargs")}
+    same = {k: v for k, v in flat.algo_kwargs.items() if k not in (*ppo, "ent_coef", "policy_kwargs")}
     assert {k: post.algo_kwargs[k] for k in same} == same
     assert post.n_envs == flat.n_envs and post.env_kwargs["num_scenarios"] == flat.env_kwargs["num_scenarios"]
 
