@@ -29,16 +29,31 @@ checkpoint (the evaluation draws no random numbers), so the run computes the sam
 A checkpoint is written as soon as its segment is trained; its curve row gets the held-out
 columns when the worker returns them (before the next checkpoint, or at the end of the piece,
 which then rewrites the checkpoint; a resumed piece first evaluates a row that lacks them).
+
+Data-parallel (``workers`` > 1, ``counterplay train-anchor --workers N``): N training
+processes (this one is rank 0, the others are spawned; gloo over a file store, one torch
+thread each unless ``threads`` says otherwise) step ``num_worlds / N`` worlds each over the
+same segment pool, with their own env seeds, and average their gradients before every
+optimiser step (:mod:`cpalgo.common.distributed`, :func:`cpalgo.common.ppo_update.run_update`),
+each on minibatches of ``batch_size / N`` live transitions: the update's global batch is the
+recipe's. Rank 0 starts the parameters (broadcast), runs the worker (the other ranks adopt the
+pool and model arrays it prepared), writes the checkpoint, curve and logs and evaluates; the
+transition count and the curve's training columns cover every rank. The checkpoint holds
+every rank's RNG states; a run is resumed with the workers it was started with.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import datetime
 import functools
+import inspect
 import json
 import os
 import random
+import shutil
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -108,7 +123,9 @@ class AnchorRunSettings:
         pool_size: procedural training scenes drawn per segment.
         womd_dir: folder of WOMD scenes added to every segment's pool (None: none).
         eval_tasks: held-out procedural tasks of the curve (``eval_pool(n, 0)``).
-        threads: torch intra-op threads (None: torch's choice).
+        threads: torch intra-op threads (None: torch's choice; 1 per process with workers > 1).
+        workers: data-parallel training processes (see the module docstring); must divide
+            the recipe's worlds and minibatch size.
     """
 
     recipe: str
@@ -119,9 +136,10 @@ class AnchorRunSettings:
     womd_dir: str | None = None
     eval_tasks: int = 200
     threads: int | None = None
+    workers: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("seed", "timesteps", "segment_timesteps", "pool_size", "eval_tasks"):
+        for name in ("seed", "timesteps", "segment_timesteps", "pool_size", "eval_tasks", "workers"):
             v = getattr(self, name)
             low = 0 if name == "seed" else 1
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
@@ -203,18 +221,22 @@ def _segment_pool(settings: AnchorRunSettings, segment: int, womd: Sequence[Any]
 
 
 def _build_env(recipe: Any, settings: AnchorRunSettings, segment: int, womd: Sequence[Any],
-               procedural: Sequence[Any] | None = None, env_overrides: dict[str, Any] | None = None) -> Any:
+               procedural: Sequence[Any] | None = None, env_overrides: dict[str, Any] | None = None,
+               rank: int = 0) -> Any:
     """The segment's env; ``procedural``: its procedural pool when already drawn;
-    ``env_overrides``: the run's recorded env changes (:func:`env_changes`) over the recipe's."""
+    ``env_overrides``: the run's recorded env changes (:func:`env_changes`) over the recipe's;
+    ``rank``: with ``settings.workers`` > 1, whose share of the worlds (its own env seed,
+    ``num_worlds / workers`` worlds of the same pool)."""
     from stable_baselines3.common.vec_env import VecMonitor
 
     from cpsim import SelfPlayVecEnv
 
     kwargs = {k: v for k, v in recipe.env_kwargs.items() if k not in ("family", "num_scenarios", "womd_dir", "seed")}
     kwargs.update(env_overrides or {})
-    env_seed = int(np.random.SeedSequence([settings.seed, segment, 1]).generate_state(1)[0])
+    entropy = [settings.seed, segment, 1] + ([rank] if settings.workers > 1 else [])
+    env_seed = int(np.random.SeedSequence(entropy).generate_state(1)[0])
     pool = (list(procedural) + list(womd)) if procedural is not None else _segment_pool(settings, segment, womd)
-    env = SelfPlayVecEnv(scenarios=pool, num_worlds=recipe.num_worlds, seed=env_seed, **kwargs)
+    env = SelfPlayVecEnv(scenarios=pool, num_worlds=recipe.num_worlds // settings.workers, seed=env_seed, **kwargs)
     return VecMonitor(env)
 
 
@@ -280,9 +302,10 @@ class _SegmentWorker:
         self._prepared = self._submit(_prepare_segment, self.settings, segment, config)
         self._segment = segment
 
-    def take(self, segment: int) -> list[Any] | None:
-        """The prepared procedural pool of ``segment`` (its model arrays offered to the next
-        Model of that pool), or None when nothing was prepared for it or the worker failed."""
+    def take(self, segment: int) -> tuple[list[Any], Any] | None:
+        """The prepared procedural pool of ``segment`` and its :class:`cpsim.model.ModelHost`
+        (already offered to the next Model of that pool), or None when nothing was prepared
+        for it or the worker failed."""
         from cpsim.model import offer_model_host
 
         job, self._prepared = self._prepared, None
@@ -294,7 +317,7 @@ class _SegmentWorker:
             self.log(f"segment {segment}: preparing in the worker failed ({type(exc).__name__}: {exc}); building here")
             return None
         offer_model_host(host)
-        return procedural
+        return procedural, host
 
     def evaluate(self, checkpoint: Path, recipe_path: Path) -> None:
         """Start evaluating the checkpoint file (it must stay unchanged until :meth:`evaluation`)."""
@@ -479,13 +502,51 @@ def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None)
     return path
 
 
-def _new_model(recipe: Any, settings: AnchorRunSettings, env: Any) -> Any:
+def _new_model(recipe: Any, settings: AnchorRunSettings, env: Any, rank: int = 0) -> Any:
+    """The run's model. With ``settings.workers`` > 1: minibatches of ``batch_size / workers``
+    (the ranks' minibatches together are the recipe's), rank 0's initial parameters on every
+    rank, and the other ranks seeded apart (their own action draws and minibatch orders)."""
+    from cpalgo.common.distributed import broadcast_parameters
     from cpalgo.counterplay.algorithm import CounterPlay
 
     kwargs = dict(recipe.algo_kwargs)
     kwargs.pop("schedule_timesteps", None)
-    return CounterPlay(recipe.policy, env, counterfactual=False, seed=settings.seed,
-                       schedule_timesteps=settings.timesteps, **kwargs)
+    seed = settings.seed
+    if settings.workers > 1:
+        batch_size = _batch_size(recipe)
+        kwargs["batch_size"] = None if batch_size is None else batch_size // settings.workers
+        if rank:
+            seed = int(np.random.SeedSequence([settings.seed, rank, 2]).generate_state(1)[0])
+    model = CounterPlay(recipe.policy, env, counterfactual=False, seed=seed,
+                        schedule_timesteps=settings.timesteps, **kwargs)
+    if settings.workers > 1:
+        broadcast_parameters(model.policy)  # the ranks start from rank 0's parameters
+    return model
+
+
+def _batch_size(recipe: Any) -> int | None:
+    """The recipe's minibatch size in live transitions (CounterPlay's default when unset;
+    None: the whole rollout)."""
+    from cpalgo.counterplay.algorithm import CounterPlay
+
+    default = inspect.signature(CounterPlay.__init__).parameters["batch_size"].default
+    value = recipe.algo_kwargs.get("batch_size", default)
+    return None if value is None else int(value)
+
+
+def _check_workers(recipe: Any, workers: int) -> None:
+    """``workers`` must divide the recipe's worlds and minibatch size (every rank steps the
+    same share, the ranks' minibatches add up to the recipe's). Raises ``ValueError`` naming
+    ``--workers``."""
+    if workers == 1:
+        return
+    if recipe.num_worlds % workers:
+        raise ValueError(f"--workers: {workers} does not divide the recipe's {recipe.num_worlds} worlds "
+                         f"(n_envs {recipe.n_envs} / max_agents); every worker steps the same share")
+    batch_size = _batch_size(recipe)
+    if batch_size is not None and batch_size % workers:
+        raise ValueError(f"--workers: {workers} does not divide the recipe's batch_size {batch_size}; "
+                         f"every worker takes batch_size / workers of each minibatch")
 
 
 def _recipe_from_run(run_dir: Path) -> Any:
@@ -585,7 +646,7 @@ def _apply_changes(model: Any, changes: dict[str, Any]) -> None:
 
 def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | None = None, *,
                      resume: bool = False, stop_after_s: float | None = None, command: str | None = None,
-                     changes: Sequence[str] = (), worker: bool = True,
+                     changes: Sequence[str] = (), worker: bool = True, workers: int | None = None,
                      log: Callable[[str], None] = print) -> Any:
     """Start (``settings`` given) or resume (``resume=True``) the run in ``run_dir``.
 
@@ -594,13 +655,16 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
     this piece on (recorded in ``run.json``; see :func:`parse_changes`).
     ``worker``: build each next segment's env and evaluate each finished segment in a
     worker process beside the training (same results, less wall time).
+    ``workers``: data-parallel training processes; a new run takes ``settings.workers``
+    (``workers``, when given, must agree), a resumed run the count it was started with
+    (``workers``, when given, must equal it).
 
     Runs segments until the budget is spent, ``stop_after_s`` seconds of this piece have
     passed (checked after each segment), or a ``STOP`` file appears in the run folder.
-    Returns the model. Raises ``ValueError`` naming the folder when it is not a run folder
-    (resume) or already holds one (start).
+    Returns the model (rank 0's). Raises ``ValueError`` naming the folder when it is not a
+    run folder (resume) or already holds one (start), naming ``--workers`` when the worker
+    count does not divide the recipe's worlds and minibatch or differs from the run's.
     """
-    from cpalgo.counterplay.algorithm import CounterPlay
     from cpalgo.recipes import load_recipe
     from cpsim.atomic import atomic_path
 
@@ -615,37 +679,63 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             raise ValueError(f"resume: {str(run_dir)!r} holds no {RUN_FILE} and {CHECKPOINT_FILE}")
         doc = json.loads((run_dir / RUN_FILE).read_text())
         settings = AnchorRunSettings.from_dict(doc["settings"], str(run_dir / RUN_FILE))
+        if workers is not None and workers != settings.workers:
+            # the checkpoint holds one RNG state per rank and each rank's share of the worlds
+            raise ValueError(f"--workers: the run in {str(run_dir)!r} was started with {settings.workers} "
+                             f"worker(s) and resumes with them only, got {workers}")
         recipe = _recipe_from_run(run_dir)
     else:
         if settings is None:
             raise ValueError("settings: needed to start a run")
+        if workers is not None and workers != settings.workers:
+            raise ValueError(f"--workers: {workers} given beside settings.workers={settings.workers}; give one")
         if (run_dir / CHECKPOINT_FILE).exists() or (run_dir / RUN_FILE).exists():
             raise ValueError(f"run_dir: {str(run_dir)!r} already holds a run; resume it with --resume")
         recipe = load_recipe(settings.recipe)
+        _check_workers(recipe, settings.workers)  # before anything is written
         run_dir.mkdir(parents=True, exist_ok=True)
         with atomic_path(run_dir / "recipe.yml") as tmp:
             Path(tmp).write_text(Path(recipe.path).read_text())
         with atomic_path(run_dir / RUN_FILE) as tmp:
             Path(tmp).write_text(json.dumps({"settings": dataclasses.asdict(settings)}, indent=2) + "\n")
         recipe = load_recipe(run_dir / "recipe.yml")
+        doc = {}
+    _check_workers(recipe, settings.workers)
     if command:
         with open(run_dir / COMMANDS_FILE, "a") as fh:
             fh.write(command + "\n")
 
-    womd: list[Any] = []
-    if settings.womd_dir is not None:
-        from cpsim.scenario import load_dir
+    # env and run settings changed in earlier pieces (or this one) hold for every later piece
+    later = {"changes": [*doc.get("changes", []), {"set": parsed}]} if parsed else doc
+    env_overrides = env_changes(later)
+    settings = _run_changes(settings, later)
+    ranks = _Ranks(settings.workers) if settings.workers > 1 else None
+    try:
+        if ranks is not None:  # started first: the other ranks load while this one does
+            ranks.start(run_dir, settings, resume, parsed, env_overrides)
+        model = _piece(run_dir, settings, recipe, resume, parsed, doc, env_overrides, worker, stop_after_s, log)
+    except BaseException:
+        if ranks is not None:
+            ranks.close(failed=True)
+        raise
+    if ranks is not None:
+        ranks.close(failed=False)
+    return model
 
-        womd = list(load_dir(settings.womd_dir)[0])
+
+def _piece(run_dir: Path, settings: AnchorRunSettings, recipe: Any, resume: bool, parsed: dict[str, Any],
+           doc: dict[str, Any], env_overrides: dict[str, Any], worker: bool, stop_after_s: float | None,
+           log: Callable[[str], None]) -> Any:
+    """Rank 0's part of :func:`train_anchor_run` (the only rank of a one-worker run): load
+    the checkpoint (resume), record ``parsed`` changes in ``run.json``, run the segments."""
+    from cpsim.atomic import atomic_path
+
+    womd = _load_womd(settings)
     tasks = _held_out(settings)
-
     if resume:
-        model = CounterPlay.load(run_dir / CHECKPOINT_FILE, device="cpu")
-        state = dict(model.resume_state)
-        _set_rng_state(state["rng"])
+        model, state = _load_checkpoint(run_dir, parsed, rank=0)
         log(f"resumed {run_dir} at {model.num_timesteps:,} transitions (segment {state['segment']})")
         if parsed:
-            _apply_changes(model, parsed)
             doc.setdefault("changes", []).append({"segment": int(state["segment"]),
                                                   "timesteps": int(model.num_timesteps), "set": parsed})
             with atomic_path(run_dir / RUN_FILE) as tmp:
@@ -654,12 +744,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
     else:
         state = {"segment": 0, "wall_s": 0.0, "rows": []}
         model = None
-        doc = {}
-    # env and run settings changed in earlier pieces (or this one) hold for every later piece
-    env_overrides = env_changes(doc)
-    settings = _run_changes(settings, doc)
-    if settings.threads is not None:
-        th.set_num_threads(settings.threads)
+    _set_threads(settings)
 
     helper = _SegmentWorker(settings, log) if worker else None
     try:
@@ -670,6 +755,120 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             helper.close()
 
 
+def _set_threads(settings: AnchorRunSettings) -> None:
+    """torch threads of a training process: ``settings.threads``; data-parallel, 1 when unset
+    (the processes share the cores)."""
+    threads = settings.threads if settings.threads is not None or settings.workers == 1 else 1
+    if threads is not None:
+        th.set_num_threads(threads)
+
+
+def _load_womd(settings: AnchorRunSettings) -> list[Any]:
+    if settings.womd_dir is None:
+        return []
+    from cpsim.scenario import load_dir
+
+    return list(load_dir(settings.womd_dir)[0])
+
+
+def _load_checkpoint(run_dir: Path, parsed: dict[str, Any], rank: int) -> tuple[Any, dict[str, Any]]:
+    """The run's model and resume state from its checkpoint, ``rank``'s RNG states restored
+    and the ``parsed`` changes applied."""
+    from cpalgo.counterplay.algorithm import CounterPlay
+
+    model = CounterPlay.load(run_dir / CHECKPOINT_FILE, device="cpu")
+    state = dict(model.resume_state)
+    rank_rng = state.get("rank_rng")
+    if rank_rng is None and rank == 0:
+        _set_rng_state(state["rng"])  # a one-worker run's checkpoint
+    elif rank_rng is None or len(rank_rng) <= rank:
+        raise ValueError(f"resume: {run_dir / CHECKPOINT_FILE} holds no RNG state of worker {rank}")
+    else:
+        _set_rng_state(rank_rng[rank])
+    if parsed:
+        _apply_changes(model, parsed)
+    return model, state
+
+
+class _Ranks:
+    """The spawned ranks 1 .. workers - 1 of a data-parallel piece and the gloo group that
+    this process joins as rank 0 (rendezvous in a file store of a fresh temporary folder)."""
+
+    #: collectives wait this long for a rank: rank 0 alone builds or evaluates between them
+    TIMEOUT = datetime.timedelta(minutes=30)
+
+    def __init__(self, workers: int) -> None:
+        self.workers = int(workers)
+        self.folder: str | None = None
+        self.processes: list[Any] = []
+
+    def start(self, run_dir: Path, settings: AnchorRunSettings, resume: bool, parsed: dict[str, Any],
+              env_overrides: dict[str, Any]) -> None:
+        """Spawn the other ranks and join the group as rank 0."""
+        import multiprocessing
+
+        import torch.distributed as dist
+
+        self.folder = tempfile.mkdtemp(prefix="counterplay-ranks-")
+        store = os.path.join(self.folder, "store")
+        context = multiprocessing.get_context("spawn")
+        for rank in range(1, self.workers):
+            process = context.Process(target=_rank_main, daemon=True, name=f"counterplay-rank-{rank}",
+                                      args=(rank, self.workers, store, str(run_dir), settings, resume, parsed,
+                                            env_overrides))
+            process.start()
+            self.processes.append(process)
+        dist.init_process_group("gloo", init_method=f"file://{store}", rank=0, world_size=self.workers,
+                                timeout=self.TIMEOUT)
+
+    def close(self, failed: bool) -> None:
+        """Leave the group and end the other ranks: wait for them after a finished piece
+        (``RuntimeError`` naming a rank that failed), terminate them after a failed one."""
+        import torch.distributed as dist
+
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
+        for process in self.processes:
+            process.join(timeout=5 if failed else 120)
+            if process.is_alive():
+                process.terminate()
+                process.join()
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
+        bad = [(i + 1, p.exitcode) for i, p in enumerate(self.processes) if p.exitcode != 0]
+        self.processes = []
+        if bad and not failed:
+            raise RuntimeError("data-parallel worker(s) failed: " + ", ".join(f"rank {r} (exit code {c})"
+                                                                              for r, c in bad))
+
+
+def _rank_main(rank: int, workers: int, store: str, run_dir: str, settings: AnchorRunSettings, resume: bool,
+               parsed: dict[str, Any], env_overrides: dict[str, Any]) -> None:
+    """A spawned rank (1 .. workers - 1) of a data-parallel piece: joins the group first (so
+    a later failure reaches rank 0 as a closed connection), then trains its share of every
+    segment in step with rank 0; writes nothing."""
+    import torch.distributed as dist
+
+    _set_threads(settings)
+    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=workers,
+                            timeout=_Ranks.TIMEOUT)
+    try:
+        path = Path(run_dir)
+        recipe = _recipe_from_run(path)
+        womd = _load_womd(settings)
+        if resume:
+            model, state = _load_checkpoint(path, parsed, rank=rank)
+        else:
+            model, state = None, {"segment": 0, "wall_s": 0.0, "rows": []}
+        _run_segments(path, settings, recipe, model, state, womd, [], None, None, _silent, env_overrides)
+    finally:  # an exception's traceback is printed by multiprocessing; rank 0 sees the closed connection
+        dist.destroy_process_group()
+
+
+def _silent(_message: str) -> None:
+    """The log of ranks other than 0."""
+
+
 def _held_out_line(row: dict[str, Any]) -> str:
     return (f"held-out goal aggr/normal/caut {row['aggressive_goal']:.1%} / {row['normal_goal']:.1%} / "
             f"{row['cautious_goal']:.1%}, normal collision {row['normal_collision']:.1%} off-road "
@@ -678,6 +877,24 @@ def _held_out_line(row: dict[str, Any]) -> str:
             f"ego completion / at-fault / timeout Interactive {row['interactive_completion']:.0%} / "
             f"{row['interactive_at_fault']:.0%} / {row['interactive_timeout']:.0%}, Random "
             f"{row['random_completion']:.0%} / {row['random_at_fault']:.0%} / {row['random_timeout']:.0%}")
+
+
+def _segment_columns(stats: _SegmentStats, parallel: bool) -> tuple[dict[str, int], float, dict[str, float]]:
+    """A segment's training columns: outcome counts, explained variance (mean over the
+    rollouts) and update statistics (means over the updates); data-parallel, over every
+    rank's (counts summed; the ranks ran the same updates, so their means are averaged)."""
+    ev = float(np.mean(stats.ev)) if stats.ev else float("nan")
+    means = stats.update_means()
+    if not parallel:
+        return dict(stats.outcomes), ev, means
+    from cpalgo.common.distributed import all_reduce_sum, world_size
+
+    counts = all_reduce_sum([stats.outcomes[o] for o in OUTCOMES])
+    ev_sum, ev_count = all_reduce_sum([float(np.sum(stats.ev)), len(stats.ev)])
+    columns = list(means)
+    averaged = all_reduce_sum([means[c] for c in columns]) / world_size()
+    return ({o: int(c) for o, c in zip(OUTCOMES, counts)}, float(ev_sum / ev_count) if ev_count else float("nan"),
+            {c: float(v) for c, v in zip(columns, averaged)})
 
 
 def _save(model: Any, run_dir: Path, state: dict[str, Any]) -> None:
@@ -695,7 +912,13 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
                   womd: list[Any], tasks: list[Any], helper: _SegmentWorker | None,
                   stop_after_s: float | None, log: Callable[[str], None],
                   env_overrides: dict[str, Any] | None = None) -> Any:
-    """The segment loop of :func:`train_anchor_run`."""
+    """The segment loop of :func:`train_anchor_run`, run by every rank of a data-parallel
+    piece in step (only rank 0 has a ``helper``, evaluates, logs and writes the files)."""
+    from cpalgo.common import distributed
+    from cpsim.model import offer_model_host
+
+    lead = distributed.rank() == 0
+    parallel = settings.workers > 1
     state["rows"] = [dict(r) for r in state["rows"]]
     pending = False  # the last row waits for the worker's evaluation
 
@@ -716,7 +939,7 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         where += f", waited {time.perf_counter() - t_eval:.0f} s"
         log(f"segment {int(row['segment'])} ({where}): {_held_out_line(row)}")
 
-    if model is not None and state["rows"] and "normal_goal" not in state["rows"][-1]:
+    if lead and model is not None and state["rows"] and "normal_goal" not in state["rows"][-1]:
         # the piece that trained the last segment ended before its evaluation came back
         complete_last_row(None)
         _save(model, run_dir, state)
@@ -726,15 +949,20 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
     while (model.num_timesteps if model is not None else 0) < settings.timesteps:
         segment = int(state["segment"])
         t_build = time.perf_counter()
-        procedural = helper.take(segment) if helper is not None else None
-        env = _build_env(recipe, settings, segment, womd, procedural, env_overrides)
+        prepared = helper.take(segment) if helper is not None else None
+        if parallel:  # the other ranks adopt what rank 0's worker prepared (the same pool and arrays)
+            prepared = distributed.broadcast_object(prepared)
+            if not lead and prepared is not None:
+                offer_model_host(prepared[1])
+        procedural = prepared[0] if prepared is not None else None
+        env = _build_env(recipe, settings, segment, womd, procedural, env_overrides, rank=distributed.rank())
         build_s = time.perf_counter() - t_build
         prebuilt = bool(getattr(env.venv.sim.model, "prebuilt", False))
         target = min((segment + 1) * settings.segment_timesteps, settings.timesteps)
         if helper is not None and target < settings.timesteps:
             helper.prepare(segment + 1, env.venv.sim.config)
         if model is None:
-            model = _new_model(recipe, settings, env)
+            model = _new_model(recipe, settings, env, rank=distributed.rank())
         else:
             model.set_env(env)  # force_reset: the segment starts from a reset of the new env
         stats = _SegmentStats()
@@ -747,20 +975,27 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
         if pending:  # the previous segment's evaluation ran during this one's training
             complete_last_row(helper.evaluation, trained_on=True)
             pending = False
+        outcomes, ev, update_means = _segment_columns(stats, parallel)
         row: dict[str, Any] = {"segment": segment, "timesteps": int(model.num_timesteps),
                                "wall_s": round(float(state["wall_s"]) + train_wall, 1),
                                "learning_rate": float(model.policy.optimizer.param_groups[0]["lr"]),
-                               "explained_variance": float(np.mean(stats.ev)) if stats.ev else float("nan")}
-        episodes = sum(stats.outcomes.values())
+                               "explained_variance": ev}
+        episodes = sum(outcomes.values())
         row["train_episodes"] = episodes
         for o in OUTCOMES:
-            row[f"train_{o}"] = stats.outcomes[o] / episodes if episodes else float("nan")
-        row.update(stats.update_means())
+            row[f"train_{o}"] = outcomes[o] / episodes if episodes else float("nan")
+        row.update(update_means)
         previous = state["rows"][-1]["timesteps"] if state["rows"] else 0
         state["rows"].append(row)
         state["segment"] = segment + 1
         state["wall_s"] = row["wall_s"]
         state["rng"] = _rng_state()
+        if parallel:  # every rank continues from its own RNG states
+            state["rank_rng"] = distributed.gather_objects(state["rng"])
+        if not lead:  # rank 0 logs, evaluates and saves; the ranks stop together on its word
+            if distributed.broadcast_object(None):
+                break
+            continue
         log(f"segment {segment}: {model.num_timesteps:,} transitions, {train_wall:.0f} s "
             f"({(row['timesteps'] - previous) / train_wall:,.0f} /s), env {build_s:.0f} s"
             f"{' (prepared ahead)' if prebuilt else ''}, approx_kl {row['approx_kl']:.4f}, clip "
@@ -777,6 +1012,8 @@ def _run_segments(run_dir: Path, settings: AnchorRunSettings, recipe: Any, model
             stop = f"{STOP_FILE} found in {run_dir}: stopping after segment {segment}"
         elif stop_after_s is not None and time.perf_counter() - start >= stop_after_s:
             stop = f"stopping after {time.perf_counter() - start:.0f} s of this piece (--stop-after)"
+        if parallel:
+            distributed.broadcast_object(stop)
         if stop is not None:
             break
     if pending:  # the piece ends: wait for the last evaluation and keep it in the checkpoint

@@ -50,14 +50,15 @@ def _train_anchor_run(args: argparse.Namespace) -> int:
                 raise UsageError("--run-dir / --resume: give one (--resume RUN_DIR continues that run)")
             if not os.path.isdir(args.resume):
                 raise UsageError(f"--resume: no such folder {args.resume!r}")
-            train_anchor_run(args.resume, resume=True, stop_after_s=stop, command=command, changes=args.set)
+            train_anchor_run(args.resume, resume=True, stop_after_s=stop, command=command, changes=args.set,
+                             workers=args.workers)
             return 0
         if args.set:
             raise UsageError("--set: only with --resume (a new run takes its settings from --config)")
         settings = AnchorRunSettings(
             recipe=args.config, seed=args.seed, timesteps=args.timesteps or load_recipe(args.config).n_timesteps,
             segment_timesteps=args.segment, pool_size=args.pool_size, womd_dir=args.add_womd,
-            eval_tasks=args.eval_tasks, threads=args.threads)
+            eval_tasks=args.eval_tasks, threads=args.threads, workers=args.workers or 1)
         train_anchor_run(args.run_dir, settings, stop_after_s=stop, command=command)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -86,6 +87,8 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
         return _train_anchor_run(args)
     if args.set:
         raise UsageError("--set: only with --resume (it changes a resumable run's PPO settings)")
+    if args.workers is not None:
+        raise UsageError("--workers: only with --run-dir / --resume (data-parallel self-play runs)")
     _set_threads(args.threads)
 
     from cpalgo.checkpoint import AtomicCheckpointCallback, save_model_atomic

@@ -246,6 +246,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --run-dir: transitions between checkpoints, curve points and pool draws")
     ta.add_argument("--pool-size", type=_positive_int, default=512, metavar="N",
                     help="with --run-dir: procedural training scenes drawn for every segment")
+    ta.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+                    help="with --run-dir: N data-parallel training processes (each steps worlds / N of the "
+                         "recipe's worlds, minibatches of batch_size / N, gradients averaged before every step; "
+                         "one torch thread each unless --threads); must divide the worlds and batch_size. "
+                         "Recorded in run.json: --resume uses the run's count (default 1)")
     ta.add_argument("--stop-after", type=float, default=None, metavar="MINUTES",
                     help="with --run-dir / --resume: stop cleanly after the segment that passes MINUTES of this "
                          "piece (a STOP file in the run folder does the same)")

@@ -22,6 +22,15 @@ a caller can add to the parent's loop:
   spread over all the epochs (CounterPlay's distillation, the continuation baselines'
   group objectives); the updates that could not carry them (early stop, skipped
   minibatches) run on their own after the loop; logged per update that applied them.
+
+Data-parallel (a ``torch.distributed`` process group of more than one rank is initialised,
+:mod:`cpalgo.common.distributed`): every rank holds its own rollout and the ranks take the
+same optimizer steps. Each step's gradient is averaged over the ranks that had data for it
+before the norm clip; an epoch runs the largest minibatch count of any rank, a rank whose
+minibatches ran out (or whose minibatch holds no live transition) adds a zero gradient to
+the others' steps; early stopping compares the ranks' mean KL with ``target_kl``; the
+scheduled updates owed after the loop are the largest count of any rank. The ``train/``
+logs stay each rank's own. Without a process group none of this runs.
 """
 
 from __future__ import annotations
@@ -35,6 +44,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.utils import explained_variance
 
+from cpalgo.common.distributed import agree_max, average_gradients, data_parallel, joint_mean
 from cpalgo.policies import sequence_lengths
 
 __all__ = ["ScheduledTerms", "UpdateLog", "begin_update", "run_update", "normalize_advantages", "spread_schedule"]
@@ -122,12 +132,33 @@ def begin_update(model: Any) -> tuple[float, float | None]:
     return clip_range, clip_range_vf
 
 
-def _optimizer_step(model: Any, loss: th.Tensor) -> None:
-    """Backward, gradient-norm clip to ``max_grad_norm``, one optimizer step."""
+def _optimizer_step(model: Any, loss: th.Tensor | None) -> None:
+    """Backward, gradient-norm clip to ``max_grad_norm``, one optimizer step.
+
+    Data-parallel, the gradients are averaged over the ranks (before the clip, so every rank
+    clips the same gradient) and ``loss`` None is this rank's zero share of a step the others
+    take; when no rank had a loss, no rank steps. Without a process group ``loss`` is a
+    tensor and the step is the parent's.
+    """
     model.policy.optimizer.zero_grad()
-    loss.backward()
+    if loss is not None:
+        loss.backward()
+    if data_parallel() and not average_gradients(model.policy.parameters(), contributes=loss is not None):
+        return  # no rank had data for this step: every rank skips it alike
     th.nn.utils.clip_grad_norm_(model.policy.parameters(), model.max_grad_norm)
     model.policy.optimizer.step()
+
+
+def _minibatches(model: Any, count: int | None) -> Any:
+    """One pass of ``model.rollout_buffer.get(model.batch_size)``; with ``count`` (data-
+    parallel: the ranks' agreed minibatch count) padded with None up to ``count`` items."""
+    yielded = 0
+    for rollout_data in model.rollout_buffer.get(model.batch_size):
+        yielded += 1
+        yield rollout_data
+    if count is not None:
+        for _ in range(count - yielded):
+            yield None
 
 
 def _ppo_loss(model: Any, rollout_data: Any, actions: th.Tensor, mask: th.Tensor, clip_range: float,
@@ -215,15 +246,30 @@ def run_update(model: Any, clip_range: float, clip_range_vf: float | None, *, ma
         The :class:`UpdateLog` (already logged under ``train/``, except the extra terms).
     """
     log = UpdateLog()
+    parallel = data_parallel()
+    # data-parallel: every rank runs as many minibatches per epoch as the rank with the most
+    # (live transitions differ between ranks), so every rank takes every optimizer step
+    agreed = agree_max(model.rollout_buffer.num_minibatches(model.batch_size)) if parallel else None
     if scheduled:
-        total = model.n_epochs * model.rollout_buffer.num_minibatches(model.batch_size)
+        per_epoch = agreed if agreed is not None else model.rollout_buffer.num_minibatches(model.batch_size)
+        total = model.n_epochs * per_epoch
         for terms in scheduled:
             terms.schedule(total)
     update = 0
     continue_training = True
     for epoch in range(model.n_epochs):
         log.approx_kl_divs = []
-        for rollout_data in model.rollout_buffer.get(model.batch_size):
+        for rollout_data in _minibatches(model, agreed):
+            if rollout_data is None or (masked and not bool((rollout_data.mask > 1e-8).any())):
+                update += 1
+                if not parallel:
+                    continue  # every transition of this minibatch is an inactive slot: nothing to learn
+                # nothing here for this rank: the other ranks may have data, decide and step with them
+                if model.target_kl is not None and joint_mean(None) > 1.5 * model.target_kl:
+                    continue_training = False
+                    break
+                _optimizer_step(model, None)
+                continue
             actions = rollout_data.actions
             if isinstance(model.action_space, spaces.Discrete):
                 # convert discrete action from float to long
@@ -231,8 +277,6 @@ def run_update(model: Any, clip_range: float, clip_range_vf: float | None, *, ma
             mask = rollout_data.mask > 1e-8
             carried = [terms for terms in scheduled if update in terms.at and terms.pending > 0]
             update += 1
-            if masked and not bool(mask.any()):
-                continue  # every transition of this minibatch is an inactive slot: nothing to learn
 
             loss, log_prob = _ppo_loss(model, rollout_data, actions, mask, clip_range, clip_bounds, clip_range_vf, log)
             extra: dict[str, th.Tensor] = {}
@@ -254,10 +298,14 @@ def run_update(model: Any, clip_range: float, clip_range_vf: float | None, *, ma
                 log_ratio = log_prob - rollout_data.old_log_prob
                 approx_kl_div = th.mean(((th.exp(log_ratio) - 1) - log_ratio)[mask]).cpu().numpy()
                 log.approx_kl_divs.append(approx_kl_div)
-            if model.target_kl is not None and approx_kl_div > 1.5 * model.target_kl:
+            # data-parallel, the ranks stop together on their mean KL (only all-reduced when used)
+            stop_kl = approx_kl_div
+            if parallel and model.target_kl is not None:
+                stop_kl = joint_mean(float(approx_kl_div))
+            if model.target_kl is not None and stop_kl > 1.5 * model.target_kl:
                 continue_training = False
                 if model.verbose >= 1:
-                    print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_div:.2f}")
+                    print(f"Early stopping at step {epoch} due to reaching max kl: {stop_kl:.2f}")
                 break
 
             _optimizer_step(model, loss)
@@ -277,14 +325,25 @@ def run_update(model: Any, clip_range: float, clip_range_vf: float | None, *, ma
 
 def _run_owed(model: Any, terms: ScheduledTerms) -> None:
     """The scheduled updates no minibatch carried (early stop, skipped or no minibatches),
-    each an optimizer step on the terms alone."""
-    while terms.pending > 0:
-        values = terms.compute()
-        if not values:
-            break
-        _optimizer_step(model, sum(terms.weighted(values)))
-        terms.record(values)
-        terms.pending -= 1
+    each an optimizer step on the terms alone. Data-parallel, every rank takes the largest
+    count owed by any rank, adding a zero gradient to the steps it owes nothing for."""
+    if not data_parallel():
+        while terms.pending > 0:
+            values = terms.compute()
+            if not values:
+                break
+            _optimizer_step(model, sum(terms.weighted(values)))
+            terms.record(values)
+            terms.pending -= 1
+        return
+    for _ in range(agree_max(terms.pending)):
+        values = terms.compute() if terms.pending > 0 else {}
+        _optimizer_step(model, sum(terms.weighted(values)) if values else None)
+        if values:
+            terms.record(values)
+            terms.pending -= 1
+        else:
+            terms.pending = 0  # nothing left to compute here: the rank owes no more
 
 
 def _mean(values: list[Any]) -> Any:

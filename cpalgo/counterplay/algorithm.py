@@ -60,6 +60,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
 from cpalgo.common.buffers import MaskedRecurrentDictRolloutBuffer, MaskedRecurrentRolloutBuffer
+from cpalgo.common.distributed import all_reduce_sum, data_parallel
 from cpalgo.common.ppo_update import ScheduledTerms, begin_update, run_update
 from cpalgo.common.progress import LearnProgressBar
 from cpalgo.counterplay.budget import Budget
@@ -321,7 +322,9 @@ class CounterPlay(SettingsMixin, RolloutHooksMixin, SearchDriverMixin, Distillat
         """RecurrentPPO's rollout with hooks: roots and traces before each decision,
         inference on live slots, inverse-CDF sampling from recorded uniforms, activity
         masks, failure detection after each step, the previous generation's searches in
-        waves between steps. ``num_timesteps`` advances by the transitions that count."""
+        waves between steps. ``num_timesteps`` advances by the transitions that count;
+        data-parallel (:mod:`cpalgo.common.distributed`) by those of every rank, summed at the
+        rollout's end, so every rank's schedules and stopping test see the run's count."""
         assert isinstance(
             rollout_buffer, (RecurrentRolloutBuffer, RecurrentDictRolloutBuffer)
         ), f"{rollout_buffer} doesn't support recurrent policy"
@@ -342,6 +345,7 @@ class CounterPlay(SettingsMixin, RolloutHooksMixin, SearchDriverMixin, Distillat
 
         lstm_states = deepcopy(self._last_lstm_states)
         self._rollout_start(env)
+        rollout_start_timesteps = self.num_timesteps
 
         while n_steps < n_rollout_steps:
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
@@ -412,6 +416,10 @@ class CounterPlay(SettingsMixin, RolloutHooksMixin, SearchDriverMixin, Distillat
                 # stops within one step of live agents of the same budget
                 rollout_buffer.truncate(n_steps)
                 break
+
+        if data_parallel():  # the run's count: every rank's transitions of this rollout
+            local = self.num_timesteps - rollout_start_timesteps
+            self.num_timesteps = rollout_start_timesteps + int(all_reduce_sum(local))
 
         with th.no_grad():
             # Compute value for the last timestep

@@ -223,3 +223,78 @@ def test_a_piece_killed_before_its_last_evaluation_is_completed_by_the_next(tmp_
     assert messages[1].startswith("segment 0 (evaluated here")
     np.testing.assert_equal([{k: v for k, v in r.items() if k != "wall_s"} for r in read_curve(run)],
                             [{k: v for k, v in r.items() if k != "wall_s"} for r in read_curve(whole)])
+
+
+def _two_worker_settings(recipe: str, timesteps: int = 200) -> AnchorRunSettings:
+    # 4 worlds x 4 slots: 2 worlds per worker, minibatches of 16 live transitions each
+    return AnchorRunSettings(recipe=recipe, seed=3, timesteps=timesteps, segment_timesteps=100, pool_size=2,
+                             eval_tasks=2, workers=2)
+
+
+@pytest.fixture()
+def four_worlds(tmp_path: Path) -> str:
+    path = tmp_path / "four_worlds.yml"
+    path.write_text(RECIPE.replace("n_envs: 8", "n_envs: 16"))
+    return str(path)
+
+
+def test_two_workers_pieces_equal_one_uninterrupted_run(tmp_path: Path, four_worlds: str):
+    import json
+
+    # the uninterrupted run prepares each next segment in rank 0's worker (rank 1 adopts it)
+    messages: list[str] = []
+    whole = train_anchor_run(tmp_path / "whole", _two_worker_settings(four_worlds), log=messages.append, worker=True)
+    assert sum("(prepared ahead)" in m for m in messages) == 1, messages  # segment 1
+    rows = read_curve(tmp_path / "whole")
+    assert len(rows) == 2 and rows[-1]["timesteps"] >= 200 > rows[0]["timesteps"] >= 100
+    assert whole.num_timesteps == rows[-1]["timesteps"] and whole.batch_size == 16  # 32 over 2 workers
+    assert whole.n_envs == 2 * 4  # each worker steps 2 of the 4 worlds
+    assert len(whole.resume_state["rank_rng"]) == 2
+    assert json.loads((tmp_path / "whole" / "run.json").read_text())["settings"]["workers"] == 2
+
+    pieces = tmp_path / "pieces"
+    train_anchor_run(pieces, _two_worker_settings(four_worlds), stop_after_s=0.0, log=_quiet, worker=False)
+    assert len(read_curve(pieces)) == 1
+    with pytest.raises(ValueError, match="--workers: the run .* started with 2 worker"):
+        train_anchor_run(pieces, resume=True, workers=1, log=_quiet, worker=False)
+    resumed = train_anchor_run(pieces, resume=True, workers=2, log=_quiet, worker=False)
+    assert resumed.num_timesteps == whole.num_timesteps
+    assert _same(_weights(pieces), _weights(tmp_path / "whole"))
+    opt_a, opt_b = _optimizer(pieces), _optimizer(tmp_path / "whole")
+    assert all(th.equal(opt_a["state"][k]["exp_avg_sq"], opt_b["state"][k]["exp_avg_sq"]) for k in opt_a["state"])
+    np.testing.assert_equal([{k: v for k, v in r.items() if k != "wall_s"} for r in read_curve(pieces)],
+                            [{k: v for k, v in r.items() if k != "wall_s"} for r in rows])
+
+
+def test_workers_must_divide_the_worlds_and_the_minibatch(tmp_path: Path, four_worlds: str, recipe: str):
+    import dataclasses
+
+    with pytest.raises(ValueError, match="--workers: 3 does not divide the recipe's 4 worlds"):
+        train_anchor_run(tmp_path / "three", dataclasses.replace(_two_worker_settings(four_worlds), workers=3),
+                         log=_quiet)
+    assert not (tmp_path / "three").exists()  # rejected before anything is written
+    odd = tmp_path / "odd_batch.yml"
+    odd.write_text(Path(four_worlds).read_text().replace("batch_size: 32", "batch_size: 30"))
+    with pytest.raises(ValueError, match="--workers: 4 does not divide the recipe's batch_size 30"):
+        train_anchor_run(tmp_path / "four", dataclasses.replace(_two_worker_settings(str(odd)), workers=4),
+                         log=_quiet)
+    with pytest.raises(ValueError, match="workers: expected a whole number >= 1"):
+        AnchorRunSettings(recipe=recipe, workers=0)
+    # a one-worker run resumes with one worker only
+    train_anchor_run(tmp_path / "one", _settings(recipe), stop_after_s=0.0, log=_quiet, worker=False)
+    with pytest.raises(ValueError, match="--workers: the run .* started with 1 worker"):
+        train_anchor_run(tmp_path / "one", resume=True, workers=2, log=_quiet)
+
+
+def test_the_cli_reports_a_bad_workers_count_as_a_usage_error(tmp_path: Path, four_worlds: str, capsys):
+    from cpalgo import cli
+
+    for argv, message in ((["--run-dir", str(tmp_path / "run"), "--config", four_worlds, "--workers", "3"],
+                           "--workers: 3 does not divide the recipe's 4 worlds"),
+                          (["--config", four_worlds, "--out", str(tmp_path / "a.zip"), "--workers", "2"],
+                           "--workers: only with --run-dir / --resume")):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["train-anchor", *argv])
+        assert exc.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
