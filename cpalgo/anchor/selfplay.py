@@ -52,7 +52,6 @@ import inspect
 import json
 import os
 import random
-import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -799,7 +798,7 @@ class _Ranks:
 
     def __init__(self, workers: int) -> None:
         self.workers = int(workers)
-        self.folder: str | None = None
+        self.folder: tempfile.TemporaryDirectory | None = None   # the group's rendezvous file store
         self.processes: list[Any] = []
 
     def start(self, run_dir: Path, settings: AnchorRunSettings, resume: bool, parsed: dict[str, Any],
@@ -809,8 +808,8 @@ class _Ranks:
 
         import torch.distributed as dist
 
-        self.folder = tempfile.mkdtemp(prefix="counterplay-ranks-")
-        store = os.path.join(self.folder, "store")
+        self.folder = tempfile.TemporaryDirectory(prefix="counterplay-ranks-", ignore_cleanup_errors=True)
+        store = os.path.join(self.folder.name, "store")
         context = multiprocessing.get_context("spawn")
         for rank in range(1, self.workers):
             process = context.Process(target=_rank_main, daemon=True, name=f"counterplay-rank-{rank}",
@@ -834,7 +833,8 @@ class _Ranks:
                 process.terminate()
                 process.join()
         if self.folder is not None:
-            shutil.rmtree(self.folder, ignore_errors=True)
+            self.folder.cleanup()
+            self.folder = None
         bad = [(i + 1, p.exitcode) for i, p in enumerate(self.processes) if p.exitcode != 0]
         self.processes = []
         if bad and not failed:
