@@ -39,7 +39,9 @@ each on minibatches of ``batch_size / N`` live transitions: the update's global 
 recipe's. Rank 0 starts the parameters (broadcast), runs the worker (the other ranks adopt the
 pool and model arrays it prepared), writes the checkpoint, curve and logs and evaluates; the
 transition count and the curve's training columns cover every rank. The checkpoint holds
-every rank's RNG states; a run is resumed with the workers it was started with.
+every rank's RNG states; a run resumes with its workers, or with another count set by
+``--set workers=N`` (recorded in ``run.json`` like any change; ranks the checkpoint holds no
+RNG state for start from :func:`_seed_new_rank`).
 """
 
 from __future__ import annotations
@@ -102,8 +104,10 @@ CHANGEABLE: tuple[str, ...] = ("learning_rate", "ent_coef", "vf_coef", "clip_ran
 #: later piece applies them when it builds its envs (:func:`env_changes`).
 ENV_CHANGEABLE: tuple[str, ...] = ("timeout_terminal", "eval_task_share")
 #: run settings a resumed piece may change: torch threads (the results do not depend on them
-#: beyond float rounding; useful when two runs share a machine)
-RUN_CHANGEABLE: tuple[str, ...] = ("threads",)
+#: beyond float rounding; useful when two runs share a machine) and the data-parallel workers
+#: (each rank's share of the worlds and minibatch; ranks new to the run seeded by
+#: :func:`_seed_new_rank`)
+RUN_CHANGEABLE: tuple[str, ...] = ("threads", "workers")
 #: seed of the held-out procedural tasks (``cpsim.scenario.eval_pool``), shared with the CLI
 HELD_OUT_SEED = 0
 
@@ -562,7 +566,7 @@ def parse_changes(items: Sequence[str]) -> dict[str, Any]:
 
     Keys must be in :data:`CHANGEABLE`, :data:`ENV_CHANGEABLE` or :data:`RUN_CHANGEABLE`;
     schedules (``learning_rate``, ``clip_range``) take the recipe's forms, ``timeout_terminal``
-    true / false, ``eval_task_share`` a share in [0, 1], ``n_epochs`` and ``threads`` a whole
+    true / false, ``eval_task_share`` a share in [0, 1], ``n_epochs``, ``threads`` and ``workers`` a whole
     number >= 1, the rest a number >= 0. Raises ``ValueError`` naming the item.
     """
     from cpalgo.recipes import parse_schedule
@@ -579,7 +583,7 @@ def parse_changes(items: Sequence[str]) -> dict[str, Any]:
         if key in ("learning_rate", "clip_range"):
             parse_schedule(text, key)  # raises naming the key
             changes[key] = text
-        elif key in ("n_epochs", "threads"):
+        elif key in ("n_epochs", "threads", "workers"):
             if not text.isdigit() or int(text) < 1:
                 raise ValueError(f"set: {key} must be a whole number >= 1, got {text!r}")
             changes[key] = int(text)
@@ -678,10 +682,11 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             raise ValueError(f"resume: {str(run_dir)!r} holds no {RUN_FILE} and {CHECKPOINT_FILE}")
         doc = json.loads((run_dir / RUN_FILE).read_text())
         settings = AnchorRunSettings.from_dict(doc["settings"], str(run_dir / RUN_FILE))
-        if workers is not None and workers != settings.workers:
+        running = _run_changes(settings, doc).workers
+        if workers is not None and workers != parsed.get("workers", running):
             # the checkpoint holds one RNG state per rank and each rank's share of the worlds
-            raise ValueError(f"--workers: the run in {str(run_dir)!r} was started with {settings.workers} "
-                             f"worker(s) and resumes with them only, got {workers}")
+            raise ValueError(f"--workers: the run in {str(run_dir)!r} runs with {running} worker(s) and "
+                             f"resumes with them only, got {workers} (change it with --set workers=N)")
         recipe = _recipe_from_run(run_dir)
     else:
         if settings is None:
@@ -708,6 +713,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
     later = {"changes": [*doc.get("changes", []), {"set": parsed}]} if parsed else doc
     env_overrides = env_changes(later)
     settings = _run_changes(settings, later)
+    _check_workers(recipe, settings.workers)  # a count set in this piece
     ranks = _Ranks(settings.workers) if settings.workers > 1 else None
     try:
         if ranks is not None:  # started first: the other ranks load while this one does
@@ -732,7 +738,7 @@ def _piece(run_dir: Path, settings: AnchorRunSettings, recipe: Any, resume: bool
     womd = _load_womd(settings)
     tasks = _held_out(settings)
     if resume:
-        model, state = _load_checkpoint(run_dir, parsed, rank=0)
+        model, state = _load_checkpoint(run_dir, parsed, 0, settings, recipe)
         log(f"resumed {run_dir} at {model.num_timesteps:,} transitions (segment {state['segment']})")
         if parsed:
             doc.setdefault("changes", []).append({"segment": int(state["segment"]),
@@ -770,23 +776,41 @@ def _load_womd(settings: AnchorRunSettings) -> list[Any]:
     return list(load_dir(settings.womd_dir)[0])
 
 
-def _load_checkpoint(run_dir: Path, parsed: dict[str, Any], rank: int) -> tuple[Any, dict[str, Any]]:
+def _load_checkpoint(run_dir: Path, parsed: dict[str, Any], rank: int, settings: AnchorRunSettings,
+                     recipe: Any) -> tuple[Any, dict[str, Any]]:
     """The run's model and resume state from its checkpoint, ``rank``'s RNG states restored
-    and the ``parsed`` changes applied."""
+    and the ``parsed`` changes applied. When ``parsed`` changes the worker count, the model
+    takes its rank's share of the worlds and minibatch, and a rank the checkpoint holds no
+    RNG state for starts from :func:`_seed_new_rank`."""
     from cpalgo.counterplay.algorithm import CounterPlay
 
     model = CounterPlay.load(run_dir / CHECKPOINT_FILE, device="cpu")
     state = dict(model.resume_state)
-    rank_rng = state.get("rank_rng")
-    if rank_rng is None and rank == 0:
-        _set_rng_state(state["rng"])  # a one-worker run's checkpoint
-    elif rank_rng is None or len(rank_rng) <= rank:
-        raise ValueError(f"resume: {run_dir / CHECKPOINT_FILE} holds no RNG state of worker {rank}")
-    else:
+    rank_rng = state.get("rank_rng") or [state["rng"]]   # a one-worker run's checkpoint holds one
+    if rank < len(rank_rng):
         _set_rng_state(rank_rng[rank])
+    elif "workers" in parsed:
+        _seed_new_rank(settings.seed, int(state["segment"]), rank)
+    else:
+        raise ValueError(f"resume: {run_dir / CHECKPOINT_FILE} holds no RNG state of worker {rank}")
+    if "workers" in parsed:
+        batch_size = _batch_size(recipe)
+        model.batch_size = None if batch_size is None else batch_size // settings.workers
+        model.resize_envs(recipe.n_envs // settings.workers)
     if parsed:
         _apply_changes(model, parsed)
     return model, state
+
+
+def _seed_new_rank(seed: int, segment: int, rank: int) -> None:
+    """Seed the Python, NumPy and torch RNGs of a rank new to a resumed run from the run's
+    seed, the segment it joins at and its rank (its action draws and minibatch orders)."""
+    import torch
+
+    state = np.random.SeedSequence([seed, segment, rank, 3]).generate_state(2)
+    random.seed(int(state[0]))
+    np.random.seed(int(state[1]))
+    torch.manual_seed(int(state[0]) << 32 | int(state[1]))
 
 
 class _Ranks:
@@ -857,7 +881,7 @@ def _rank_main(rank: int, workers: int, store: str, run_dir: str, settings: Anch
         recipe = _recipe_from_run(path)
         womd = _load_womd(settings)
         if resume:
-            model, state = _load_checkpoint(path, parsed, rank=rank)
+            model, state = _load_checkpoint(path, parsed, rank, settings, recipe)
         else:
             model, state = None, {"segment": 0, "wall_s": 0.0, "rows": []}
         _run_segments(path, settings, recipe, model, state, womd, [], None, None, _silent, env_overrides)

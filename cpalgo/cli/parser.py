@@ -241,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --resume: change a setting from this piece on: PPO (learning_rate, ent_coef, vf_coef, gamma, gae_lambda, "
                          "clip_range, max_grad_norm, n_epochs; schedules as in a recipe, e.g. "
                          "learning_rate=cosine(3e-3)), env (timeout_terminal=true|false, eval_task_share=S) or "
-                         "threads=N; recorded in the run's run.json and kept by later pieces; repeatable")
+                         "threads=N or workers=N; recorded in the run's run.json and kept by later pieces; repeatable")
     ta.add_argument("--segment", type=_positive_int, default=10_000_000, metavar="N",
                     help="with --run-dir: transitions between checkpoints, curve points and pool draws")
     ta.add_argument("--pool-size", type=_positive_int, default=512, metavar="N",
@@ -250,7 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --run-dir: N data-parallel training processes (each steps worlds / N of the "
                          "recipe's worlds, minibatches of batch_size / N, gradients averaged before every step; "
                          "one torch thread each unless --threads); must divide the worlds and batch_size. "
-                         "Recorded in run.json: --resume uses the run's count (default 1)")
+                         "Recorded in run.json: --resume uses the run's count (default 1; --set workers=N changes it)")
     ta.add_argument("--stop-after", type=float, default=None, metavar="MINUTES",
                     help="with --run-dir / --resume: stop cleanly after the segment that passes MINUTES of this "
                          "piece (a STOP file in the run folder does the same)")

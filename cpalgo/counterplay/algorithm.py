@@ -259,6 +259,30 @@ class CounterPlay(SettingsMixin, RolloutHooksMixin, SearchDriverMixin, Distillat
         self._reset_runtime()
         self._check_branching_env(self.env)
 
+    def resize_envs(self, n_envs: int) -> None:
+        """Take ``n_envs`` envs from the next ``set_env`` on (a resumed anchor run that changes
+        its data-parallel workers): the rollout buffer and the recurrent states are rebuilt
+        for them; the policy, the optimiser and the counters stay."""
+        if int(n_envs) < 1:
+            raise ValueError(f"n_envs: expected a whole number >= 1, got {n_envs!r}")
+        from sb3_contrib.common.recurrent.type_aliases import RNNStates
+
+        self.n_envs = int(n_envs)
+        lstm = self.policy.lstm_actor
+        shape = (lstm.num_layers, self.n_envs, lstm.hidden_size)
+
+        def zeros() -> tuple[th.Tensor, th.Tensor]:
+            return th.zeros(shape, device=self.device), th.zeros(shape, device=self.device)
+
+        self._last_lstm_states = RNNStates(zeros(), zeros())
+        buffer_cls = type(self.rollout_buffer)
+        self.rollout_buffer = buffer_cls(
+            self.n_steps, self.observation_space, self.action_space, (self.n_steps, *shape), self.device,
+            gamma=self.gamma, gae_lambda=self.gae_lambda, n_envs=self.n_envs,
+        )
+        self.rollout_buffer.active_only = self.mask_inactive
+        self._reset_runtime()
+
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         super().set_env(env, force_reset=force_reset)
         self._check_branching_env(self.env)

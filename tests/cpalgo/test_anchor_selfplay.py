@@ -255,7 +255,7 @@ def test_two_workers_pieces_equal_one_uninterrupted_run(tmp_path: Path, four_wor
     pieces = tmp_path / "pieces"
     train_anchor_run(pieces, _two_worker_settings(four_worlds), stop_after_s=0.0, log=_quiet, worker=False)
     assert len(read_curve(pieces)) == 1
-    with pytest.raises(ValueError, match="--workers: the run .* started with 2 worker"):
+    with pytest.raises(ValueError, match="--workers: the run .* runs with 2 worker"):
         train_anchor_run(pieces, resume=True, workers=1, log=_quiet, worker=False)
     resumed = train_anchor_run(pieces, resume=True, workers=2, log=_quiet, worker=False)
     assert resumed.num_timesteps == whole.num_timesteps
@@ -280,10 +280,33 @@ def test_workers_must_divide_the_worlds_and_the_minibatch(tmp_path: Path, four_w
                          log=_quiet)
     with pytest.raises(ValueError, match="workers: expected a whole number >= 1"):
         AnchorRunSettings(recipe=recipe, workers=0)
-    # a one-worker run resumes with one worker only
+    # a one-worker run resumes with one worker unless a change says otherwise
     train_anchor_run(tmp_path / "one", _settings(recipe), stop_after_s=0.0, log=_quiet, worker=False)
-    with pytest.raises(ValueError, match="--workers: the run .* started with 1 worker"):
+    with pytest.raises(ValueError, match="--workers: the run .* runs with 1 worker.*--set workers=N"):
         train_anchor_run(tmp_path / "one", resume=True, workers=2, log=_quiet)
+    with pytest.raises(ValueError, match="workers must be a whole number >= 1"):
+        train_anchor_run(tmp_path / "one", resume=True, changes=["workers=0"], log=_quiet)
+
+
+def test_a_resumed_run_changes_its_worker_count(tmp_path: Path, four_worlds: str):
+    import dataclasses
+    import json
+
+    run = tmp_path / "run"
+    one = dataclasses.replace(_two_worker_settings(four_worlds, timesteps=300), workers=1)
+    first = train_anchor_run(run, one, stop_after_s=0.0, log=_quiet, worker=False)
+    assert first.batch_size == 32 and first.n_envs == 4 * 4 and "rank_rng" not in first.resume_state
+    # the next piece trains on two ranks from the one-worker checkpoint (rank 1 seeded anew)
+    two = train_anchor_run(run, resume=True, changes=["workers=2"], stop_after_s=0.0, log=_quiet, worker=False)
+    assert two.batch_size == 16 and two.n_envs == 2 * 4 and len(two.resume_state["rank_rng"]) == 2
+    assert two.num_timesteps > first.num_timesteps and len(read_curve(run)) == 2
+    changes = json.loads((run / "run.json").read_text())["changes"]
+    assert changes[-1]["set"] == {"workers": 2}
+    # later pieces keep the recorded count: --workers 2 agrees with it, 1 does not
+    with pytest.raises(ValueError, match="--workers: the run .* runs with 2 worker"):
+        train_anchor_run(run, resume=True, workers=1, log=_quiet, worker=False)
+    third = train_anchor_run(run, resume=True, workers=2, stop_after_s=0.0, log=_quiet, worker=False)
+    assert third.batch_size == 16 and third.n_envs == 2 * 4 and len(read_curve(run)) == 3
 
 
 def test_the_cli_reports_a_bad_workers_count_as_a_usage_error(tmp_path: Path, four_worlds: str, capsys):
