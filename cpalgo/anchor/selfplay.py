@@ -552,6 +552,18 @@ def _check_workers(recipe: Any, workers: int) -> None:
                          f"every worker takes batch_size / workers of each minibatch")
 
 
+def _check_cores(settings: AnchorRunSettings) -> None:
+    """Data-parallel ranks must not ask for more torch threads than the machine has cores:
+    oversubscribed OpenMP threads spin-wait on each other, and a piece then runs many times
+    slower than one process. Raises ``ValueError`` naming ``threads``."""
+    if settings.workers == 1 or settings.threads is None:
+        return
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if settings.threads * settings.workers > cores:
+        raise ValueError(f"threads: {settings.threads} torch threads in each of {settings.workers} workers exceed "
+                         f"this machine's {cores} cores; set fewer (--set threads=N, or --threads N for a new run)")
+
+
 def _recipe_from_run(run_dir: Path) -> Any:
     from cpalgo.recipes import load_recipe
 
@@ -697,6 +709,7 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             raise ValueError(f"run_dir: {str(run_dir)!r} already holds a run; resume it with --resume")
         recipe = load_recipe(settings.recipe)
         _check_workers(recipe, settings.workers)  # before anything is written
+        _check_cores(settings)
         run_dir.mkdir(parents=True, exist_ok=True)
         with atomic_path(run_dir / "recipe.yml") as tmp:
             Path(tmp).write_text(Path(recipe.path).read_text())
@@ -704,16 +717,16 @@ def train_anchor_run(run_dir: str | os.PathLike, settings: AnchorRunSettings | N
             Path(tmp).write_text(json.dumps({"settings": dataclasses.asdict(settings)}, indent=2) + "\n")
         recipe = load_recipe(run_dir / "recipe.yml")
         doc = {}
-    _check_workers(recipe, settings.workers)
-    if command:
-        with open(run_dir / COMMANDS_FILE, "a") as fh:
-            fh.write(command + "\n")
 
     # env and run settings changed in earlier pieces (or this one) hold for every later piece
     later = {"changes": [*doc.get("changes", []), {"set": parsed}]} if parsed else doc
     env_overrides = env_changes(later)
     settings = _run_changes(settings, later)
-    _check_workers(recipe, settings.workers)  # a count set in this piece
+    _check_workers(recipe, settings.workers)  # a count set now or in an earlier piece
+    _check_cores(settings)
+    if command:
+        with open(run_dir / COMMANDS_FILE, "a") as fh:
+            fh.write(command + "\n")
     ranks = _Ranks(settings.workers) if settings.workers > 1 else None
     try:
         if ranks is not None:  # started first: the other ranks load while this one does

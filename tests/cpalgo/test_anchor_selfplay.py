@@ -309,6 +309,30 @@ def test_a_resumed_run_changes_its_worker_count(tmp_path: Path, four_worlds: str
     assert third.batch_size == 16 and third.n_envs == 2 * 4 and len(read_curve(run)) == 3
 
 
+def test_workers_times_threads_may_not_exceed_the_cores(tmp_path: Path, four_worlds: str, monkeypatch):
+    import dataclasses
+    import json
+    import os
+
+    # two 2-thread ranks on 2 cores spin-wait on each other: a piece ran many times slower than one process
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    with pytest.raises(ValueError, match="threads: 2 torch threads in each of 2 workers exceed this machine's 2 cores"):
+        train_anchor_run(tmp_path / "new", dataclasses.replace(_two_worker_settings(four_worlds), threads=2),
+                         log=_quiet)
+    assert not (tmp_path / "new").exists()
+    run = tmp_path / "run"
+    one = dataclasses.replace(_two_worker_settings(four_worlds, timesteps=300), workers=1, threads=2)
+    train_anchor_run(run, one, stop_after_s=0.0, log=_quiet, worker=False)
+    commands = (run / "commands.txt").read_text() if (run / "commands.txt").exists() else ""
+    with pytest.raises(ValueError, match="threads: 2 torch threads in each of 2 workers.*--set threads=N"):
+        train_anchor_run(run, resume=True, changes=["workers=2"], log=_quiet, worker=False, command="resume")
+    assert "changes" not in json.loads((run / "run.json").read_text())  # nothing recorded
+    assert ((run / "commands.txt").read_text() if (run / "commands.txt").exists() else "") == commands
+    two = train_anchor_run(run, resume=True, changes=["workers=2", "threads=1"], stop_after_s=0.0, log=_quiet,
+                           worker=False)
+    assert two.n_envs == 2 * 4 and len(two.resume_state["rank_rng"]) == 2
+
+
 def test_the_cli_reports_a_bad_workers_count_as_a_usage_error(tmp_path: Path, four_worlds: str, capsys):
     from cpalgo import cli
 
