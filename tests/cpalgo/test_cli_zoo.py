@@ -68,6 +68,23 @@ def test_selfplay_post_training_recipe_is_its_anchors_setup():
     assert post.n_envs == flat.n_envs and post.env_kwargs["num_scenarios"] == flat.env_kwargs["num_scenarios"]
 
 
+def test_classic_ppo_coplayer_recipe_is_the_anchors_without_conditions():
+    """zoo/ppo_traffic_classic.yml trains the selfplay regime's co-player apart from the anchor:
+    the anchor's dynamics and reward, every agent under the normal profile (unconditioned)."""
+    from cpsim.envs.selfplay import SelfPlayVecEnv
+
+    anchor = load_recipe(ZOO_DIR / "anchor_selfplay.yml")
+    traffic = load_recipe(ZOO_DIR / "ppo_traffic_classic.yml")
+    assert traffic.env_kwargs["dynamics"] == anchor.env_kwargs["dynamics"] == "classic"
+    assert anchor.env_kwargs["condition"] == "train" and traffic.env_kwargs["condition"] == "normal"
+    assert traffic.algo_kwargs["clip_reward"] == anchor.algo_kwargs["clip_reward"] == 1.0
+    env = SelfPlayVecEnv(num_scenarios=1, **traffic.env_kwargs)
+    try:
+        assert env.fixed_condition is not None  # one condition for every agent
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("text, match", [
     ("[1, 2", "not valid YAML"),
     ("other-env: {policy: x, n_envs: 1, n_timesteps: 1}", "no entry"),
