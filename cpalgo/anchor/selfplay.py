@@ -457,6 +457,34 @@ def curve_table(rows: Sequence[dict[str, float]], every: int = 1) -> str:
     return "\n".join(lines)
 
 
+def curve_rise(rows: Sequence[dict[str, float]], key: str = "normal_goal", share: float = 1 / 3) -> dict[str, float]:
+    """How much ``key`` (a held-out rate) rose over the last ``share`` of a run's transitions,
+    the plateau test of an anchor run: the least-squares line through the evaluated points
+    from ``(1 - share) x`` the last point's transitions on, taken across that span.
+
+    Returns ``start`` and ``end`` (transitions of the span), ``points`` (evaluated rows in it),
+    ``rise`` (the line's change over the span, a rate difference) and ``first`` / ``last``
+    (the mean rate of the span's first and last quarter of points, at least one each).
+    Raises ``ValueError`` when fewer than 3 points fall in the span.
+    """
+    if not 0.0 < share <= 1.0:
+        raise ValueError(f"share: expected a share in (0, 1], got {share!r}")
+    evaluated = [r for r in rows if key in r]
+    if not evaluated:
+        raise ValueError(f"key: no curve row has {key!r}")
+    end = evaluated[-1]["timesteps"]
+    start = (1.0 - share) * end
+    span = [r for r in evaluated if r["timesteps"] >= start * (1 - 1e-9)]  # a point on the boundary is in
+    if len(span) < 3:
+        raise ValueError(f"curve: {len(span)} evaluated point(s) in the last {share:.0%} of the run; need 3")
+    x = np.array([r["timesteps"] for r in span], dtype=np.float64)
+    y = np.array([r[key] for r in span], dtype=np.float64)
+    slope = np.polyfit(x, y, 1)[0]
+    quarter = max(1, len(span) // 4)
+    return {"start": float(start), "end": float(end), "points": len(span), "rise": float(slope * (end - start)),
+            "first": float(y[:quarter].mean()), "last": float(y[-quarter:].mean())}
+
+
 def plot_curve(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
     """Draw ``curve.png``: held-out goal rate per style and the normal style's failure
     classes against transitions (wall time on the top axis), and the critic's explained

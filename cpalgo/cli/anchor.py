@@ -66,7 +66,7 @@ def _train_anchor_run(args: argparse.Namespace) -> int:
 
 
 def cmd_curve(args: argparse.Namespace) -> int:
-    from cpalgo.anchor.selfplay import curve_table, plot_curve, read_curve
+    from cpalgo.anchor.selfplay import curve_rise, curve_table, plot_curve, read_curve
 
     try:
         path = plot_curve(args.run_dir, args.out)
@@ -76,9 +76,21 @@ def cmd_curve(args: argparse.Namespace) -> int:
     if args.table:
         print(curve_table(rows, args.table))
     last = rows[-1]
+    # a running piece writes a segment's row before its worker has evaluated it
+    evaluated = [r for r in rows if "normal_goal" in r]
+    held_out = (f"held-out goal aggressive / normal / cautious {evaluated[-1]['aggressive_goal']:.1%} / "
+                f"{evaluated[-1]['normal_goal']:.1%} / {evaluated[-1]['cautious_goal']:.1%} "
+                f"at {evaluated[-1]['timesteps'] / 1e6:.1f}M") if evaluated else "no held-out evaluation yet"
     print(f"{path}: {len(rows)} points, last at {last['timesteps'] / 1e6:.1f}M transitions "
-          f"({last['wall_s'] / 3600:.2f} h): held-out goal aggressive / normal / cautious "
-          f"{last['aggressive_goal']:.1%} / {last['normal_goal']:.1%} / {last['cautious_goal']:.1%}")
+          f"({last['wall_s'] / 3600:.2f} h): {held_out}")
+    try:
+        rise = curve_rise(rows)
+    except ValueError as exc:  # too short a run for the plateau test
+        print(f"plateau test: {exc}")
+    else:
+        print(f"plateau test: over the last third ({rise['start'] / 1e6:.1f}M to {rise['end'] / 1e6:.1f}M, "
+              f"{rise['points']} points) the normal goal rate's fitted line rose {100 * rise['rise']:+.1f} points "
+              f"(first / last quarter of the points {rise['first']:.1%} / {rise['last']:.1%})")
     return 0
 
 

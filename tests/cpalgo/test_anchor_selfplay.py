@@ -119,6 +119,31 @@ def test_pieces_and_a_killed_piece_equal_one_uninterrupted_run(tmp_path: Path, r
     assert "| - / - / - |" in selfplay.curve_table(read_curve(tmp_path / "partial")).splitlines()[-1]
 
 
+def test_curve_rise_fits_the_last_third(tmp_path: Path, capsys):
+    from cpalgo import cli
+
+    # 30 points, 10M apart: flat at 0.80 up to 200M, then +0.5 points per 10M to 300M
+    rows = [{"segment": i, "timesteps": 10e6 * (i + 1), "wall_s": 60.0 * (i + 1),
+             "normal_goal": 0.80 + (0.005 * (i - 19) if i > 19 else 0.0),
+             "aggressive_goal": 0.9, "cautious_goal": 0.7} for i in range(30)]
+    rise = selfplay.curve_rise(rows)
+    assert rise["start"] == pytest.approx(200e6) and rise["end"] == 300e6 and rise["points"] == 11
+    assert rise["rise"] == pytest.approx(0.05) and rise["first"] < rise["last"] == pytest.approx(0.8475)
+    flat = [dict(r, normal_goal=0.8 + (0.02 if i % 2 else -0.02)) for i, r in enumerate(rows)]
+    assert abs(selfplay.curve_rise(flat)["rise"]) < 0.01  # noise around a level is no rise
+    with pytest.raises(ValueError, match="1 evaluated point"):
+        selfplay.curve_rise(rows[:2])
+    with pytest.raises(ValueError, match="share: expected"):
+        selfplay.curve_rise(rows, share=0.0)
+    # the CLI prints it beside the last evaluated point, a row still waiting for its evaluation apart
+    run = tmp_path / "run"
+    run.mkdir()
+    selfplay._write_curve(run, [*rows, {"segment": 30, "timesteps": 310e6, "wall_s": 1900.0}])
+    assert cli.main(["curve", str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "last at 310.0M" in out and "90.0% / 85.0% / 70.0% at 300.0M" in out and "rose +5.0 points" in out
+
+
 def test_run_folder_errors_name_the_folder(tmp_path: Path, recipe: str):
     with pytest.raises(ValueError, match="holds no run.json"):
         train_anchor_run(tmp_path / "nothing", resume=True, log=_quiet)
