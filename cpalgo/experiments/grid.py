@@ -22,11 +22,17 @@ A grid file is YAML (``zoo/experiments/paper_small.yml`` is the reference)::
       regimes: all                      # BehaviorBench's eight, or a list
       deployments: {normal: all, halfway: [anchor, ppo-continue, counterplay]}
       pool: procedural                  # or a folder of WOMD files
-      seed: 0
+      seed: 0                           # task set; a list ([0, 1]) evaluates every run on each
       traffic_policy: null              # co-player checkpoint (default: the anchor)
       ppo_policy: null                  # selfplay regime's PPO co-player (default: zoo/ppo_traffic.zip)
       coplayers: vehicles               # who follows the regime: vehicles (BehaviorBench) or controllable
       max_worlds: 256
+
+Several task sets (``evaluation.seed: [0, 1]``, distinct whole numbers) evaluate every run
+and the anchor on each set (procedural pools only): the tables pool the sets, ``results.csv``
+has a row per set (:mod:`cpalgo.experiments.tables`). The first set is the folder's own: a
+resumed folder keeps it first, and more sets may be added later (see
+:mod:`cpalgo.experiments.runner`).
 
 Every key is checked before anything runs: an unknown key, an unknown method, a budget
 <= 0, a missing anchor or recipe, an unknown deployment condition or regime, a setting a
@@ -92,7 +98,9 @@ class EvalSettings:
         regimes: traffic regimes (canonical names).
         deployments: deployment condition -> the methods evaluated under it (``anchor``
             included). Profile names (``normal``, ``halfway``, ``aggressive``, ...).
-        pool, pool_size, seed: the evaluation pool (:func:`cpalgo.evaluate.make_tasks`).
+        pool, pool_size, seed: the evaluation pool (:func:`cpalgo.evaluate.make_tasks`);
+            ``seed`` is one task set (an int) or several (a tuple of distinct ints, each run
+            evaluated on every one; :attr:`task_sets`).
         traffic_policy, bc_policy: co-player checkpoints (None: the anchor; the shipped BC model).
         ppo_policy: the ``selfplay`` regime's PPO co-player checkpoint (None: the evaluator's
             default ``zoo/ppo_traffic.zip`` when it acts in the evaluation's dynamics, else the
@@ -110,7 +118,7 @@ class EvalSettings:
     deployments: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
     pool: str = "procedural"
     pool_size: int | None = None
-    seed: int = 0
+    seed: int | tuple[int, ...] = 0
     traffic_policy: str | None = None
     bc_policy: str | None = None
     ppo_policy: str | None = None
@@ -118,6 +126,11 @@ class EvalSettings:
     max_worlds: int = 256
     max_agents: int | None = None
     sim_config: Mapping[str, Any] | None = None
+
+    @property
+    def task_sets(self) -> tuple[int, ...]:
+        """The task sets (pool seeds) every run is evaluated on, the folder's own first."""
+        return tuple(int(s) for s in self.seed) if isinstance(self.seed, (tuple, list)) else (int(self.seed),)
 
     @property
     def split_arg(self) -> str:
@@ -185,8 +198,10 @@ class GridConfig:
             "worlds": self.worlds, "method_settings": _jsonable(self.method_settings),
             # coplayers: controllable was the only rule before the setting existed, and no
             # ppo_policy the only choice before that one; leaving them out keeps those grids'
-            # folders resumable
-            "evaluation": _jsonable({k: v for k, v in dataclasses.asdict(self.evaluation).items()
+            # folders resumable. seed: the first task set only, whose files carry no task-set
+            # name (runs.eval_path), so that more task sets may be added to a folder later
+            "evaluation": _jsonable({k: (self.evaluation.task_sets[0] if k == "seed" else v)
+                                     for k, v in dataclasses.asdict(self.evaluation).items()
                                      if k != "deployments" and not (k == "coplayers" and v == "controllable")
                                      and not (k == "ppo_policy" and v is None)}),
         }
@@ -228,6 +243,23 @@ def _whole(value: Any, where: str, key: str, minimum: int) -> int:
     if f < minimum:
         raise _fail(where, key, f"must be >= {minimum}, got {value!r}" if minimum != 1 else f"must be > 0, got {value!r}")
     return int(f)
+
+
+def _task_sets(value: Any, where: str, key: str) -> int | tuple[int, ...]:
+    """``evaluation.seed``: one task set (a whole number) or a list of distinct ones (a list
+    of one is that set alone)."""
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        if not value:
+            raise _fail(where, key, f"expected a whole number or a non-empty list of distinct whole numbers, "
+                        f"got {value!r}")
+        sets = tuple(_whole(v, where, key, 0) for v in value)
+        if len(set(sets)) != len(sets):
+            raise _fail(where, key, f"lists a task set twice: {list(value)!r}")
+        return sets[0] if len(sets) == 1 else sets
+    if isinstance(value, Mapping):
+        raise _fail(where, key, f"expected a whole number or a non-empty list of distinct whole numbers, "
+                    f"got {value!r}")
+    return _whole(value, where, key, 0)
 
 
 def _mapping(value: Any, where: str, key: str) -> dict[str, Any]:
@@ -462,6 +494,10 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         if not os.path.isdir(pool_path):
             raise _fail(where, "evaluation.pool", f"neither 'procedural' nor a folder: {pool!r}")
         pool = pool_path
+    seed = _task_sets(ev.get("seed", 0), where, "evaluation.seed")
+    if not isinstance(seed, int) and pool != "procedural" and "interactive" in splits:
+        raise _fail(where, "evaluation.seed", "several task sets need pool: procedural (the interactive split "
+                    "of a folder is the same for every seed)")
     pool_size = ev.get("pool_size")
     pool_size = None if pool_size is None else _whole(pool_size, where, "evaluation.pool_size", tasks)
     traffic = ev.get("traffic_policy")
@@ -489,7 +525,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
             raise _fail(where, f"evaluation.sim_config.{field.removeprefix('SimConfig.')}", why or str(exc)) from None
     evaluation = EvalSettings(
         tasks=tasks, splits=tuple(splits), regimes=regimes, deployments=deployments, pool=pool,
-        pool_size=pool_size, seed=_whole(ev.get("seed", 0), where, "evaluation.seed", 0),
+        pool_size=pool_size, seed=seed,
         traffic_policy=traffic, bc_policy=bc, ppo_policy=ppo, coplayers=coplayers,
         max_worlds=_whole(ev.get("max_worlds", 256), where, "evaluation.max_worlds", 1),
         max_agents=None if max_agents is None else _whole(max_agents, where, "evaluation.max_agents", 1),

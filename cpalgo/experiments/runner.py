@@ -17,8 +17,12 @@ Backends (``backend``):
 A grid is resumable: run it again with the same ``out`` and finished runs are skipped,
 runs with a checkpoint continue from it, missing evaluations are added. ``out`` keeps the
 grid it was made for (``grid.json``); a grid whose runs would differ (anchor, recipe,
-budget, settings, evaluation) is refused, while adding methods, seeds or deployment
-conditions is fine.
+budget, settings, evaluation) is refused, while adding methods, seeds, deployment
+conditions or task sets is fine. Task sets (``evaluation.seed: [0, 1]``): every run and the
+anchor are evaluated on each, each evaluation a file of its own
+(:func:`cpalgo.experiments.runs.eval_path`), so growing ``seed: 0`` to ``seed: [0, 1]``
+evaluates the trained runs on task set 1 without training them again. The first task set
+names the folder's unlabelled files and must stay first.
 """
 
 from __future__ import annotations
@@ -104,6 +108,12 @@ def _check_out(grid: GridConfig, out: Path) -> None:
         if key == "anchor_bytes" or (key == "anchor_weights_sha1" and key not in previous):
             continue
         if previous.get(key) != current[key]:
+            before, now = previous.get(key), current[key]
+            if (key == "evaluation" and isinstance(before, dict) and before.get("seed") != now.get("seed")
+                    and {k: v for k, v in before.items() if k != "seed"} == {k: v for k, v in now.items() if k != "seed"}):
+                raise GridError(f"out: {out} holds runs evaluated first on task set {before.get('seed')} "
+                                f"(evaluation.seed differs: this grid's first is {now.get('seed')}); list "
+                                f"{before.get('seed')} first (more task sets may follow it) or use another --out")
             raise GridError(f"out: {out} holds runs of another grid ({key} differs); use another --out "
                             "or the grid it was made with")
 
@@ -259,9 +269,11 @@ def run_experiment(config: str | os.PathLike | Mapping[str, Any] | GridConfig, o
     if echo is not None:
         states = {s.key: run_status(grid, out, s) for s in pending}
         resumed = sum(v == "resume" for v in states.values())
+        sets = grid.evaluation.task_sets
+        on_sets = f" on task sets {', '.join(map(str, sets))}" if len(sets) > 1 else ""
         echo(f"[grid] {grid.name}: {len(specs) - 1} runs ({len(grid.methods)} methods x {len(grid.seeds)} seeds) "
-             f"+ the anchor's evaluations at B_post {grid.budget:,}; {skipped} already done, {resumed} to resume, "
-             f"backend {backend}")
+             f"+ the anchor's evaluations at B_post {grid.budget:,}{on_sets}; {skipped} already done, "
+             f"{resumed} to resume, backend {backend}")
     if pending:
         if backend == "ray":
             _run_ray(grid, pending, out, address, grid_progress, echo, result)

@@ -15,9 +15,13 @@ Files of a run (``OUT/runs/<method>/seed<k>/``), every one written atomically:
 * ``model.zip`` + ``train.json``: the trained model and its summary (budget, counters, wall
   time); ``train.json`` marks the training as finished.
 * ``eval_<deployment>.npz``: the evaluator's per task-regime columns
-  (:class:`cpalgo.evaluate.runner.EvalResult`), one file per deployment condition.
+  (:class:`cpalgo.evaluate.runner.EvalResult`), one file per deployment condition, on the
+  grid's first task set (``evaluation.seed``); ``eval_<deployment>.taskset<k>.npz`` on each
+  further task set k (:func:`eval_path`). Each is a file of its own, so a resumed grid
+  evaluates only the missing ones, and a task set added to the grid later is evaluated
+  without training again.
 
-The anchor's evaluations live in ``OUT/anchor/eval_<deployment>.npz``.
+The anchor's evaluations live in ``OUT/anchor/eval_<deployment>.npz`` (and ``.taskset<k>``).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import numpy as np
 from cpalgo.experiments.grid import ANCHOR, GridConfig, RunSpec
 from cpsim.atomic import write_bytes_atomic
 
-__all__ = ["run_dir", "run_status", "execute_run", "train_run", "evaluate_columns", "load_columns",
+__all__ = ["run_dir", "eval_path", "run_status", "execute_run", "train_run", "evaluate_columns", "load_columns",
            "budget_state", "restore_budget_state", "save_checkpoint", "read_checkpoint", "CHECKPOINT_STATE",
            "write_bytes_atomic", "write_json_atomic"]
 
@@ -69,8 +73,19 @@ def run_dir(out: str | os.PathLike, spec: RunSpec) -> Path:
     return out / ANCHOR if spec.method == ANCHOR else out / "runs" / spec.method / f"seed{spec.seed}"
 
 
-def _eval_file(folder: Path, deployment: str) -> Path:
-    return folder / f"eval_{deployment}.npz"
+def eval_path(grid: GridConfig, folder: str | os.PathLike, deployment: str, task_set: int | None = None) -> Path:
+    """A run folder's evaluation file under ``deployment`` on ``task_set`` (default: the
+    grid's first): ``eval_<deployment>.npz`` for the first task set, which is the name a
+    grid of one task set has always used, ``eval_<deployment>.taskset<k>.npz`` for another."""
+    sets = grid.evaluation.task_sets
+    if task_set is None or int(task_set) == sets[0]:
+        return Path(folder) / f"eval_{deployment}.npz"
+    return Path(folder) / f"eval_{deployment}.taskset{int(task_set)}.npz"
+
+
+def _evaluations(grid: GridConfig, spec: RunSpec) -> list[tuple[int, str]]:
+    """(task set, deployment) of every evaluation of a run, task sets outermost."""
+    return [(t, d) for t in grid.evaluation.task_sets for d in grid.evaluation.deployments_of(spec.method)]
 
 
 def _readable(path: Path) -> bool:
@@ -86,7 +101,7 @@ def run_status(grid: GridConfig, out: str | os.PathLike, spec: RunSpec) -> str:
     """``done`` (trained and every evaluation written), ``evaluate`` (trained, evaluations
     missing or unreadable), ``resume`` (a checkpoint to continue from) or ``new``."""
     folder = run_dir(out, spec)
-    evals_done = all(_readable(_eval_file(folder, d)) for d in grid.evaluation.deployments_of(spec.method))
+    evals_done = all(_readable(eval_path(grid, folder, d, t)) for t, d in _evaluations(grid, spec))
     if spec.method == ANCHOR:
         return "done" if evals_done else "evaluate"
     if (folder / "train.json").is_file() and (folder / "model.zip").is_file():
@@ -312,20 +327,37 @@ def train_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: Ech
 
 # ----------------------------------------------------------------------------- evaluation
 _EVALUATORS: dict[tuple, Any] = {}
+_TASKS: dict[tuple, Any] = {}
 
 
-def _evaluator(grid: GridConfig, deployment: str) -> Any:
-    """One evaluator per (evaluation settings, deployment) per process (the tasks and the
-    co-player models are built once and reused by every run this process evaluates)."""
-    from cpalgo.evaluate.runner import EvalConfig, Evaluator, make_tasks
+def _tasks(grid: GridConfig, task_set: int) -> list[Any]:
+    """The tasks of one task set, built once per process (a procedural pool takes tens of
+    seconds; the evaluators of every deployment condition share them)."""
+    from cpalgo.evaluate.runner import make_tasks
 
     e = grid.evaluation
+    key = (e.pool, e.split_arg, e.tasks, task_set, e.pool_size)
+    if key not in _TASKS:
+        while len(_TASKS) >= 4:
+            _TASKS.pop(next(iter(_TASKS)))
+        _TASKS[key] = make_tasks(e.pool, e.split_arg, e.tasks, seed=task_set, pool_size=e.pool_size)
+    return _TASKS[key]
+
+
+def _evaluator(grid: GridConfig, deployment: str, task_set: int | None = None) -> Any:
+    """One evaluator per (evaluation settings, deployment, task set) per process (the
+    co-player models are built once and reused by every run this process evaluates; the
+    simulator's memory keeps three at most, the tasks are kept apart by :func:`_tasks`)."""
+    from cpalgo.evaluate.runner import EvalConfig, Evaluator
+
+    e = grid.evaluation
+    task_set = e.task_sets[0] if task_set is None else int(task_set)
     key = (json.dumps(grid.run_fingerprint()["evaluation"], sort_keys=True), grid.anchor, deployment,
-           grid.torch_threads, grid.device)
+           grid.torch_threads, grid.device, task_set)
     if key not in _EVALUATORS:
-        tasks = make_tasks(e.pool, e.split_arg, e.tasks, seed=e.seed, pool_size=e.pool_size)
+        tasks = _tasks(grid, task_set)
         config = EvalConfig(deploy_condition=deployment, max_worlds=e.max_worlds, max_agents=e.max_agents,
-                            seed=e.seed, device=grid.device, progress=False, torch_threads=grid.torch_threads,
+                            seed=task_set, device=grid.device, progress=False, torch_threads=grid.torch_threads,
                             coplayers=e.coplayers)
         # every run starts from the anchor: its action set gives the evaluation's dynamics
         ev = Evaluator(tasks, e.regimes, traffic_policy=e.traffic_policy or grid.anchor, bc_policy=e.bc_policy,
@@ -337,9 +369,11 @@ def _evaluator(grid: GridConfig, deployment: str) -> Any:
     return _EVALUATORS[key]
 
 
-def evaluate_columns(grid: GridConfig, policy: Any, deployment: str, label: str) -> dict[str, np.ndarray]:
-    """Per task-regime columns of ``policy`` (model or checkpoint path) under ``deployment``."""
-    result = _evaluator(grid, deployment).run(policy, label)
+def evaluate_columns(grid: GridConfig, policy: Any, deployment: str, label: str,
+                     task_set: int | None = None) -> dict[str, np.ndarray]:
+    """Per task-regime columns of ``policy`` (model or checkpoint path) under ``deployment``
+    on ``task_set`` (default: the grid's first)."""
+    result = _evaluator(grid, deployment, task_set).run(policy, label)
     return {k: np.asarray(v) for k, v in result.columns.items()}
 
 
@@ -378,8 +412,9 @@ def execute_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: E
             return payload
         model: Any = None
         if spec.method != ANCHOR and status in ("new", "resume"):
-            for deployment in grid.evaluation.deployments_of(spec.method):  # they evaluated another model
-                _eval_file(folder, deployment).unlink(missing_ok=True)
+            # they evaluated another model (every task set and deployment, those of the grid or not)
+            for path in folder.glob("eval_*.npz"):
+                path.unlink(missing_ok=True)
             train_run(grid, spec, out, echo)
         if spec.method != ANCHOR:
             model = str(folder / "model.zip")
@@ -387,14 +422,16 @@ def execute_run(grid: GridConfig, spec: RunSpec, out: str | os.PathLike, echo: E
                 (folder / "train.json").read_bytes()
         else:
             model = grid.anchor
-        for deployment in grid.evaluation.deployments_of(spec.method):
-            target = _eval_file(folder, deployment)
+        several = len(grid.evaluation.task_sets) > 1
+        for task_set, deployment in _evaluations(grid, spec):
+            target = eval_path(grid, folder, deployment, task_set)
             if not _readable(target):
                 te = time.perf_counter()
-                columns = evaluate_columns(grid, model, deployment, spec.method)
+                columns = evaluate_columns(grid, model, deployment, spec.method, task_set)
                 write_bytes_atomic(target, _npz_bytes(columns))
                 if echo is not None:
-                    echo(f"[{spec.key}] evaluated under {deployment}: mean score "
+                    where = f" on task set {task_set}" if several else ""
+                    echo(f"[{spec.key}] evaluated under {deployment}{where}: mean score "
                          f"{float(np.mean(columns['score'])):.1f} over {columns['score'].size} task-regimes "
                          f"({time.perf_counter() - te:.0f} s)")
             rel = target.relative_to(Path(out))

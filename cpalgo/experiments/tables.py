@@ -25,6 +25,12 @@ A table is written only where the grid has its runs:
 
 Rates are percentages in the tables and in ``results.csv`` (columns ``*_pct``); scores
 are 0-100; ``co_player_harm`` is other vehicles collided or off-road per task.
+
+Several task sets (``evaluation.seed: [0, 1]``): ``results.csv`` gets a ``task_set`` column
+(after ``deployment``) and a row per task set; the tables pool each run's task sets (their
+task-regimes together: with equal task counts, the mean over the sets) and then report
+mean ± std over the training seeds as with one set. A run counts in the tables only once it
+is evaluated on every task set. With one task set both files are as they always were.
 """
 
 from __future__ import annotations
@@ -43,7 +49,7 @@ import numpy as np
 from cpalgo.counterplay.search import ADMISSION_VERDICTS
 from cpalgo.evaluate import metrics as M
 from cpalgo.experiments.grid import ANCHOR, GridConfig
-from cpalgo.experiments.runs import load_columns, run_dir
+from cpalgo.experiments.runs import eval_path, load_columns, run_dir
 from cpsim.atomic import write_bytes_atomic
 
 __all__ = ["GridResults", "collect_results", "results_csv", "markdown_report", "write_tables", "repaired",
@@ -80,16 +86,22 @@ class GridResults:
 
     Attributes:
         grid: the grid.
-        evals: (method, seed, deployment) -> columns; the anchor's seed is None.
+        evals: (method, seed, deployment) -> columns; the anchor's seed is None. With
+            several task sets: the columns of every task set, concatenated in the grid's
+            order with a ``task_set`` column, for the runs evaluated on all of them.
         train: (method, seed) -> ``train.json``.
         summary: (method, seed, deployment, split, regime) -> :func:`metrics.summarize`;
             regime ``"mean"`` is the mean over the regimes.
+        set_evals, set_summary: the same per task set (a last key element, the task set);
+            filled only when the grid has several task sets.
     """
 
     grid: GridConfig
     evals: dict[tuple[str, int | None, str], dict[str, np.ndarray]] = field(default_factory=dict)
     train: dict[tuple[str, int], dict[str, Any]] = field(default_factory=dict)
     summary: dict[tuple[str, int | None, str, str, str], dict[str, float]] = field(default_factory=dict)
+    set_evals: dict[tuple[str, int | None, str, int], dict[str, np.ndarray]] = field(default_factory=dict)
+    set_summary: dict[tuple[str, int | None, str, str, str, int], dict[str, float]] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -99,6 +111,10 @@ class GridResults:
     @property
     def regimes(self) -> tuple[str, ...]:
         return self.grid.evaluation.regimes
+
+    @property
+    def task_sets(self) -> tuple[int, ...]:
+        return self.grid.evaluation.task_sets
 
     @property
     def main_deployment(self) -> str:
@@ -135,34 +151,65 @@ class GridResults:
         return [m for m in self.grid.methods if get_method(m).group in groups]
 
 
+def _pooled(per_set: dict[int, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The columns of several task sets as one evaluation (in the given order), plus the
+    ``task_set`` of each row."""
+    keys = [k for k in next(iter(per_set.values())) if all(k in cols for cols in per_set.values())]
+    pooled = {k: np.concatenate([np.asarray(cols[k]) for cols in per_set.values()]) for k in keys}
+    pooled["task_set"] = np.concatenate([np.full(np.asarray(cols["score"]).shape[0], t, np.int64)
+                                         for t, cols in per_set.items()])
+    return pooled
+
+
+def _summaries(grid: GridConfig, cols: dict[str, np.ndarray]) -> dict[tuple[str, str], dict[str, float]]:
+    """(split, regime) -> :func:`metrics.summarize` of one evaluation, regime ``"mean"``
+    included where every regime of the grid was evaluated."""
+    out: dict[tuple[str, str], dict[str, float]] = {}
+    for split in grid.evaluation.splits:
+        per_regime = []
+        for regime in grid.evaluation.regimes:
+            m = (cols["split"] == split) & (cols["regime"] == regime)
+            if not m.any():
+                continue
+            s = M.summarize({k: np.asarray(cols[k])[m] for k in _SUMMARY_SOURCES if k in cols})
+            out[(split, regime)] = s
+            per_regime.append(s)
+        # the regime mean only when every regime of the grid was evaluated: a mean over
+        # fewer regimes would not be comparable with the other rows
+        if per_regime and len(per_regime) == len(grid.evaluation.regimes):
+            keys = [k for k in per_regime[0] if k != "n"]
+            mean = {k: float(np.mean([p[k] for p in per_regime])) for k in keys}
+            mean["n"] = sum(int(p["n"]) for p in per_regime)
+            out[(split, "mean")] = mean
+    return out
+
+
 def collect_results(out: str | os.PathLike, grid: GridConfig) -> GridResults:
-    """Read every evaluation and training summary the grid's runs wrote so far."""
+    """Read every evaluation and training summary the grid's runs wrote so far (with
+    several task sets, a run's evaluations are pooled once it has all of them)."""
     res = GridResults(grid=grid)
+    sets = grid.evaluation.task_sets
     for spec in grid.runs():
         folder = run_dir(out, spec)
         for deployment in grid.evaluation.deployments_of(spec.method):
-            path = folder / f"eval_{deployment}.npz"
-            if path.is_file():
-                res.evals[(spec.method, spec.seed, deployment)] = load_columns(path)
+            per_set = {t: load_columns(path) for t in sets
+                       if (path := eval_path(grid, folder, deployment, t)).is_file()}
+            if len(sets) == 1:
+                if per_set:
+                    res.evals[(spec.method, spec.seed, deployment)] = per_set[sets[0]]
+                continue
+            for t, cols in per_set.items():
+                res.set_evals[(spec.method, spec.seed, deployment, t)] = cols
+            if len(per_set) == len(sets):
+                res.evals[(spec.method, spec.seed, deployment)] = _pooled(per_set)
         if spec.method != ANCHOR and (folder / "train.json").is_file():
             res.train[(spec.method, int(spec.seed))] = json.loads((folder / "train.json").read_text())
     for (method, seed, deployment), cols in res.evals.items():
-        for split in grid.evaluation.splits:
-            per_regime = []
-            for regime in grid.evaluation.regimes:
-                m = (cols["split"] == split) & (cols["regime"] == regime)
-                if not m.any():
-                    continue
-                s = M.summarize({k: np.asarray(cols[k])[m] for k in _SUMMARY_SOURCES if k in cols})
-                res.summary[(method, seed, deployment, split, regime)] = s
-                per_regime.append(s)
-            # the regime mean only when every regime of the grid was evaluated: a mean over
-            # fewer regimes would not be comparable with the other rows
-            if per_regime and len(per_regime) == len(grid.evaluation.regimes):
-                keys = [k for k in per_regime[0] if k != "n"]
-                mean = {k: float(np.mean([p[k] for p in per_regime])) for k in keys}
-                mean["n"] = sum(int(p["n"]) for p in per_regime)
-                res.summary[(method, seed, deployment, split, "mean")] = mean
+        for (split, regime), s in _summaries(grid, cols).items():
+            res.summary[(method, seed, deployment, split, regime)] = s
+    for (method, seed, deployment, t), cols in res.set_evals.items():
+        for (split, regime), s in _summaries(grid, cols).items():
+            res.set_summary[(method, seed, deployment, split, regime, t)] = s
     return res
 
 
@@ -191,20 +238,29 @@ def _table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
 
 
 def results_csv(res: GridResults) -> str:
-    """One row per (method, seed, split, regime, deployment) (see the module docstring)."""
+    """One row per (method, seed, split, regime, deployment), and per task set (column
+    ``task_set``) when the grid has several (see the module docstring)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["method", "seed", "split", "regime", "deployment", "n_tasks", *(c for c, _, _ in RESULT_METRICS)])
+    several = len(res.task_sets) > 1
+    w.writerow(["method", "seed", "split", "regime", "deployment", *(["task_set"] if several else []), "n_tasks",
+                *(c for c, _, _ in RESULT_METRICS)])
     order = [ANCHOR, *res.grid.methods]
-    for (method, seed, deployment, split, regime), s in sorted(
-            res.summary.items(), key=lambda kv: (order.index(kv[0][0]), -1 if kv[0][1] is None else kv[0][1],
-                                                 list(res.grid.evaluation.deployments).index(kv[0][2]),
-                                                 res.splits.index(kv[0][3]),
-                                                 (list(res.regimes) + ["mean"]).index(kv[0][4]))):
+    rows: dict[tuple, dict[str, float]] = dict(res.set_summary) if several else dict(res.summary)
+
+    def sort_key(key: tuple) -> tuple:
+        method, seed, deployment, split, regime = key[:5]
+        return (order.index(method), -1 if seed is None else seed,
+                list(res.grid.evaluation.deployments).index(deployment), res.splits.index(split),
+                (list(res.regimes) + ["mean"]).index(regime), *(res.task_sets.index(t) for t in key[5:]))
+
+    for key in sorted(rows, key=sort_key):
+        method, seed, deployment, split, regime = key[:5]
         if regime == "mean":
             continue
-        w.writerow([method, "" if seed is None else seed, split, regime, deployment, int(s["n"]),
-                    *(f"{scale * s.get(key, float('nan')):.4f}" for _, key, scale in RESULT_METRICS)])
+        s = rows[key]
+        w.writerow([method, "" if seed is None else seed, split, regime, deployment, *key[5:], int(s["n"]),
+                    *(f"{scale * s.get(k, float('nan')):.4f}" for _, k, scale in RESULT_METRICS)])
     return buf.getvalue()
 
 
@@ -226,15 +282,25 @@ def _table_i(res: GridResults, lines: list[str]) -> None:
                 b = _mean_std(res.values("ppo-continue", dep, split, g, "score"))[0]
                 diff.append(f"{a - b:+.1f}" if math.isfinite(a - b) else "-")
             rows.append(["CounterPlay − PPO-Continue", *diff])
-        lines += [f"### {split.capitalize()} split ({_n_tasks(res, split)} tasks)", ""] + _table(header, rows)
+        lines += [f"### {split.capitalize()} split ({_tasks_title(res, split)})", ""] + _table(header, rows)
 
 
 def _n_tasks(res: GridResults, split: str) -> int:
+    """Tasks of a split (over every task set: a task is a (task set, task) pair)."""
     for cols in res.evals.values():
         m = cols["split"] == split
         if m.any():
-            return int(np.unique(np.asarray(cols["task"])[m]).size)
+            task = np.asarray(cols["task"])[m]
+            if "task_set" in cols:
+                return len(set(zip(np.asarray(cols["task_set"])[m].tolist(), task.tolist())))
+            return int(np.unique(task).size)
     return 0
+
+
+def _tasks_title(res: GridResults, split: str) -> str:
+    n = _n_tasks(res, split)
+    sets = res.task_sets
+    return f"{n} tasks" if len(sets) == 1 else f"{n} tasks over task sets {', '.join(map(str, sets))}, pooled"
 
 
 def _table_ii(res: GridResults, lines: list[str]) -> None:
@@ -463,14 +529,21 @@ def markdown_report(res: GridResults, extra: str = "") -> str:
     g = res.grid
     e = g.evaluation
     n_done = len({(m, s) for (m, s, _d) in res.evals if m != ANCHOR})
+    sets = e.task_sets
+    pool = (f"pool {e.pool} (seed {e.seed})" if len(sets) == 1 else
+            f"pool {e.pool} ({len(sets)} task sets: seeds {', '.join(map(str, sets))})")
     lines = [f"# Grid {g.name}", "",
              f"- anchor `{g.anchor}`, recipe `{g.recipe}`, B_post {g.budget:,} live agent transitions per run, "
              f"seeds {list(g.seeds)}",
              f"- evaluation: {e.tasks} tasks per split ({', '.join(e.splits)}), regimes {', '.join(e.regimes)}, "
-             f"pool {e.pool} (seed {e.seed}); deployments " + "; ".join(
+             f"{pool}; deployments " + "; ".join(
                  f"{d}: {len(ms)} policies" for d, ms in e.deployments.items()),
-             f"- {n_done} of {len(g.methods) * len(g.seeds)} runs evaluated",
+             f"- {n_done} of {len(g.methods) * len(g.seeds)} runs evaluated"
+             + ("" if len(sets) == 1 else " on every task set"),
              "- a ± b: mean and sample standard deviation (n − 1) over the seeds that have the run", ""]
+    if len(sets) > 1:
+        lines[-1:-1] = ["- each run's numbers pool its task sets (their task-regimes together: with equal task "
+                        "counts, the mean over the sets); results.csv has a row per task set"]
     if g.description:
         lines += [g.description.strip(), ""]
     if extra:

@@ -16,7 +16,7 @@ import yaml
 pytest.importorskip("cpsim.simulator", reason="the simulator is not available")
 
 from cpalgo.evaluate.metrics import OutcomeClass  # noqa: E402
-from cpalgo.experiments.grid import GridError, RunSpec, load_grid  # noqa: E402
+from cpalgo.experiments.grid import ANCHOR, GridError, RunSpec, load_grid  # noqa: E402
 from cpalgo.experiments.runner import ray_available, run_experiment, runs_of  # noqa: E402
 from cpalgo.experiments.runs import run_dir  # noqa: E402
 from cpalgo.experiments.tables import collect_results, markdown_report, repaired, results_csv  # noqa: E402
@@ -82,6 +82,11 @@ def grid_doc(files, **changes):
     ({"env": {"num_wheels": 3}}, "env.num_wheels"),
     ({"seeds": [0, 0]}, "seeds: lists a seed twice"),
     ({"evaluation": {"coplayers": "everyone"}}, "evaluation.coplayers: expected 'vehicles' or 'controllable'"),
+    ({"evaluation": {"seed": [0, 1, 0]}}, "evaluation.seed: lists a task set twice"),
+    ({"evaluation": {"seed": []}}, "evaluation.seed: expected a whole number or a non-empty list"),
+    ({"evaluation": {"seed": [0, -1]}}, "evaluation.seed: must be >= 0, got -1"),
+    ({"evaluation": {"seed": [0, 1.5]}}, "evaluation.seed: expected a whole number, got 1.5"),
+    ({"evaluation": {"seed": {"a": 1}}}, "evaluation.seed: expected a whole number or a non-empty list"),
     # values, not only names, are checked before any run (the algorithm's and the env's own checks)
     ({"env": {"num_scenarios": -3}}, "env.num_scenarios: must be a whole number >= 1"),
     ({"env": {"panel_share": 1.5}}, "env.panel_share: expected a number in [0, 1]"),
@@ -211,6 +216,7 @@ def test_selfplay_paper_grids_hold_every_method_on_the_selfplay_recipe(files):
         assert grid.budget == budget and grid.seeds == (0, 1, 2) and set(grid.methods) == set(method_names())
         assert grid.recipe.endswith("counterplay_selfplay.yml")
         assert grid.evaluation.tasks == 100 and len(grid.evaluation.regimes) == 8
+        assert grid.evaluation.task_sets == (0, 1)  # 100 tasks per split on 2 task sets
         assert dict(grid.evaluation.deployments) == dict(small.evaluation.deployments)
 
 
@@ -243,6 +249,24 @@ def test_coplayer_rule_defaults_to_vehicles_and_reaches_the_fingerprint(files):
     assert default.run_fingerprint()["evaluation"]["coplayers"] == "vehicles"
     assert load_grid("zoo/experiments/paper_small.yml").evaluation.coplayers == "vehicles"
     assert load_grid("docs/results/paper_core.yml").evaluation.coplayers == "controllable"  # a record
+
+
+def test_task_sets_parse_and_keep_the_fingerprint_of_the_first(files):
+    """``evaluation.seed``: an int as before, a list of task sets, a list of one = that set;
+    the fingerprint holds the first set only (so a folder may grow its list); a folder pool
+    cannot give several sets (its interactive split ignores the seed)."""
+    def grid(seed, **ev):
+        return load_grid(grid_doc(files, evaluation={**grid_doc(files)["evaluation"], "seed": seed, **ev}))
+
+    single, both, one = grid(0), grid([0, 1]), grid([3])
+    assert single.evaluation.seed == 0 and single.evaluation.task_sets == (0,)
+    assert both.evaluation.seed == (0, 1) and both.evaluation.task_sets == (0, 1)
+    assert one.evaluation.seed == 3 and one.evaluation.task_sets == (3,)
+    assert both.run_fingerprint() == single.run_fingerprint() != grid([1, 0]).run_fingerprint()
+    assert both.as_dict()["evaluation"]["seed"] == [0, 1]
+    with pytest.raises(GridError, match="evaluation.seed: several task sets need pool: procedural"):
+        grid([0, 1], pool=files["folder"])
+    assert grid([0, 1], pool=files["folder"], splits=["random"]).evaluation.task_sets == (0, 1)
 
 
 # ----------------------------------------------------------------------------- resume
@@ -283,6 +307,49 @@ def test_grid_resumes_skips_finished_runs_and_continues_killed_ones(files, tmp_p
     # a different grid in the same folder is refused, naming what differs
     with pytest.raises(GridError, match="budget differs"):
         run_experiment({**doc, "budget": 900}, out, backend="sequential", progress=False)
+
+
+def test_task_sets_are_evaluated_apart_and_added_without_training_again(files, tmp_path):
+    """A grid of one task set grown to two evaluates the trained run and the anchor on the
+    new set only (no training, the first set's files untouched); results.csv gets a row per
+    set, the tables pool them; a rerun skips everything; the first set must stay first."""
+    import csv
+
+    out = tmp_path / "out"
+    doc = grid_doc(files, budget=200)
+    first = run_experiment(doc, out, backend="sequential", progress=False)
+    assert first.ok, first.errors
+    assert (out / "results.csv").read_text().startswith("method,seed,split,regime,deployment,n_tasks,")
+    folder, anchor = run_dir(out, RunSpec("ppo-continue", 0)), run_dir(out, RunSpec("anchor", None))
+    kept = [folder / "model.zip", folder / "train.json", folder / "eval_normal.npz", anchor / "eval_normal.npz"]
+    stamps = [p.stat().st_mtime_ns for p in kept]
+
+    grown = {**doc, "evaluation": {**doc["evaluation"], "seed": [0, 1]}}
+    assert runs_of(load_grid(grown), out) == {"anchor": "evaluate", "ppo-continue/seed0": "evaluate"}
+    second = run_experiment(grown, out, backend="sequential", progress=False)
+    assert second.ok and second.runs == {"anchor": "done", "ppo-continue/seed0": "done"}, second.errors
+    assert [p.stat().st_mtime_ns for p in kept] == stamps  # not trained, set 0 not evaluated again
+    assert (folder / "eval_normal.taskset1.npz").is_file() and (anchor / "eval_normal.taskset1.npz").is_file()
+
+    with open(out / "results.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0])[:7] == ["method", "seed", "split", "regime", "deployment", "task_set", "n_tasks"]
+    assert {(r["method"], r["split"], r["task_set"]) for r in rows} == {
+        (m, split, t) for m in ("anchor", "ppo-continue") for split in ("interactive", "random") for t in "01"}
+    res = collect_results(out, load_grid(grown))
+    for method, seed in (("anchor", None), ("ppo-continue", 0)):
+        for split in ("interactive", "random"):
+            per_set = [float(r["score"]) for r in rows if (r["method"], r["split"]) == (method, split)]
+            assert res.values(method, "normal", split, "idm", "score") == pytest.approx([np.mean(per_set)], abs=1e-3)
+            assert res.summary[(method, seed, "normal", split, "idm")]["n"] == 2  # one task per split and set
+    tables = (out / "tables.md").read_text()
+    assert "2 task sets: seeds 0, 1" in tables and "(2 tasks over task sets 0, 1, pooled)" in tables
+
+    third = run_experiment(grown, out, backend="sequential", progress=False)
+    assert set(third.runs.values()) == {"skipped"}
+    with pytest.raises(GridError, match="evaluated first on task set 0 .evaluation.seed differs"):
+        run_experiment({**doc, "evaluation": {**doc["evaluation"], "seed": [1, 0]}}, out, backend="sequential",
+                       progress=False)
 
 
 # ----------------------------------------------------------------------------- tables
@@ -375,6 +442,48 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     md = markdown_report(res)
     assert "| PPO-Continue (tasks differ from the anchor's: no repair analysis) | - |" in md
     assert res.values("cp-no-style", "normal", "interactive", "mean", "score") == [5.0]  # seed 1 has no mean
+
+
+def test_tables_pool_task_sets_of_the_runs_that_have_every_set(files, tmp_path):
+    """From written files, no training: a run's task sets pool into one value per seed (mean
+    over the sets), a run missing a set stays out of the tables but keeps its rows in
+    results.csv, and Table III compares the pooled task-regimes."""
+    doc = grid_doc(files, methods=["ppo-continue"], seeds=[0, 1],
+                   evaluation={"tasks": 2, "splits": ["interactive"], "regimes": ["idm"],
+                               "deployments": ["normal"], "seed": [4, 2]})
+    grid = load_grid(doc)
+    out = tmp_path / "out"
+    sr = [("interactive", "idm")] * 2
+
+    def put(method, seed, task_set, score):
+        buf = io.BytesIO()
+        goal = [s > 0 for s in score]
+        np.savez_compressed(buf, **_columns(sr, goal, [0, 0], [0, 0], [0, 0], score))
+        name = "eval_normal.npz" if task_set == 4 else f"eval_normal.taskset{task_set}.npz"
+        write_bytes_atomic(run_dir(out, RunSpec(method, seed)) / name, buf.getvalue())
+
+    put("anchor", None, 4, [0, 40])
+    put("anchor", None, 2, [0, 0])
+    put("ppo-continue", 0, 4, [60, 40])  # set 4: 50, set 2: 30 -> 40
+    put("ppo-continue", 0, 2, [60, 0])
+    put("ppo-continue", 1, 4, [80, 80])  # no task set 2 yet: not in the tables
+    res = collect_results(out, grid)
+    assert res.values("ppo-continue", "normal", "interactive", "mean", "score") == [40.0]
+    assert res.values(ANCHOR, "normal", "interactive", "mean", "score") == [10.0]
+    assert np.array_equal(res.evals[("ppo-continue", 0, "normal")]["task_set"], [4, 4, 2, 2])
+    rows = results_csv(res).splitlines()
+    assert rows[0].startswith("method,seed,split,regime,deployment,task_set,n_tasks,score")
+    assert [r.split(",")[:7] for r in rows[1:]] == [
+        ["anchor", "", "interactive", "idm", "normal", "4", "2"], ["anchor", "", "interactive", "idm", "normal", "2", "2"],
+        ["ppo-continue", "0", "interactive", "idm", "normal", "4", "2"],
+        ["ppo-continue", "0", "interactive", "idm", "normal", "2", "2"],
+        ["ppo-continue", "1", "interactive", "idm", "normal", "4", "2"]]
+    md = markdown_report(res)
+    assert "- 1 of 2 runs evaluated on every task set" in md
+    assert "| Anchor | 10.0 | 10.0 |" in md and "| PPO-Continue | 40.0 | 40.0 |" in md
+    # Table III over the 4 pooled task-regimes: the anchor's 3 timeouts, 2 of them completed after
+    assert "| Anchor (share) | 25.0 (1) | 75.0 (3) |" in md
+    assert "| PPO-Continue | 100.0 | 66.7 |" in md
 
 
 # ----------------------------------------------------------------------------- Ray
