@@ -10,6 +10,8 @@ checked, in the order ``counterplay train-anchor`` runs it.
   (``counterplay compress-anchor``, :func:`compress_checkpoint`).
 * :mod:`~cpalgo.anchor.outcomes`: self-play outcome rates on held-out tasks, the anchor's
   report card (``counterplay outcomes``, :func:`selfplay_outcomes`).
+* :mod:`~cpalgo.anchor.export`: a self-play run's latest checkpoint as a shippable anchor
+  with its provenance record (``counterplay export-anchor``, :func:`export_anchor`).
 
 Names load on first use (torch and SB3 are imported then).
 """
@@ -25,6 +27,7 @@ _LAZY = {
     "compress_checkpoint": "cpalgo.anchor.compress",
     "OutcomeRates": "cpalgo.anchor.outcomes", "selfplay_outcomes": "cpalgo.anchor.outcomes",
     "expert_outcomes": "cpalgo.anchor.outcomes",
+    "export_anchor": "cpalgo.anchor.export",
 }
 __getattr__, __dir__ = lazy_exports("cpalgo.anchor", _LAZY, globals())
 __all__ = list(_LAZY)

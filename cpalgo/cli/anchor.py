@@ -1,7 +1,9 @@
 """The anchor's commands: ``counterplay train-anchor`` (a DAgger warm start, TeacherPPO or
 plain PPO to one checkpoint; or with ``--run-dir`` / ``--resume`` a resumable self-play run,
-:mod:`cpalgo.anchor.selfplay`), ``curve`` (that run's learning curve) and ``outcomes``
-(self-play outcome rates of a checkpoint on held-out tasks, :mod:`cpalgo.anchor.outcomes`).
+:mod:`cpalgo.anchor.selfplay`), ``curve`` (that run's learning curve), ``export-anchor``
+(that run's latest checkpoint as a shippable anchor, :mod:`cpalgo.anchor.export`) and
+``outcomes`` (self-play outcome rates of a checkpoint on held-out tasks,
+:mod:`cpalgo.anchor.outcomes`).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from cpalgo.common.recipe_setup import check_algorithm_arguments, make_env
 from cpalgo.evaluate.held_out import held_out_outcomes, held_out_tasks
 from cpalgo.recipes import load_recipe, resolve_path
 
-__all__ = ["cmd_train_anchor", "cmd_curve", "cmd_outcomes"]
+__all__ = ["cmd_train_anchor", "cmd_curve", "cmd_export_anchor", "cmd_outcomes"]
 
 
 def _write_json(path: Path, doc: dict[str, Any]) -> None:
@@ -91,6 +93,33 @@ def cmd_curve(args: argparse.Namespace) -> int:
         print(f"plateau test: over the last third ({rise['start'] / 1e6:.1f}M to {rise['end'] / 1e6:.1f}M, "
               f"{rise['points']} points) the normal goal rate's fitted line rose {100 * rise['rise']:+.1f} points "
               f"(first / last quarter of the points {rise['first']:.1%} / {rise['last']:.1%})")
+    return 0
+
+
+def cmd_export_anchor(args: argparse.Namespace) -> int:
+    from cpalgo.anchor.export import export_anchor
+
+    check_out_path(args.out, "--out", folder=False)
+    if args.json is not None:
+        check_out_path(args.json, "--json", folder=False)
+    _set_threads(args.threads)
+    try:
+        record = export_anchor(args.run_dir, args.out, args.json)
+    except ValueError as exc:
+        # the function names its arguments as Python does; the command line spells them so
+        message = str(exc)
+        for name, option in (("run_dir:", "RUN_DIR:"), ("out:", "--out:"), ("json_path:", "--json:")):
+            if message.startswith(name):
+                message = option + message[len(name):]
+                break
+        raise UsageError(message) from None
+    source, anchor, curve = record["source"], record["anchor"], record["curve"]
+    evaluated = "evaluated" if curve["last_row_evaluated"] else "not yet evaluated (see the record's curve rows)"
+    print(f"{anchor['path']}: {anchor['bytes'] / 1e6:.2f} MB (the run's checkpoint {source['bytes'] / 1e6:.2f} MB), "
+          f"{record['num_timesteps']:,} transitions, {record['segments']} segments, "
+          f"{record['training_wall_s'] / 3600:.2f} h of training; its segment is {evaluated}")
+    if args.json is not None:
+        print(f"record written to {args.json}")
     return 0
 
 

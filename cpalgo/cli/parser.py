@@ -11,7 +11,7 @@ import math
 import os
 from typing import Sequence
 
-from cpalgo.cli.anchor import cmd_curve, cmd_outcomes, cmd_train_anchor
+from cpalgo.cli.anchor import cmd_curve, cmd_export_anchor, cmd_outcomes, cmd_train_anchor
 from cpalgo.cli.post import cmd_post_train, cmd_searches
 from cpalgo.cli.scenarios import cmd_pool
 from cpalgo.common.checks import UsageError
@@ -264,6 +264,18 @@ def build_parser() -> argparse.ArgumentParser:
     cu.add_argument("--table", type=_positive_int, default=None, metavar="EVERY",
                     help="also print the curve as a markdown table: every EVERY-th segment and the last")
     cu.set_defaults(func=cmd_curve)
+
+    ex = add("export-anchor", "write an anchor run's latest checkpoint as a shippable anchor",
+             "Write the latest checkpoint of a `counterplay train-anchor --run-dir` folder as an anchor to ship: "
+             "the same weights and settings, without Adam's moments and the state only a resumed piece needs "
+             "(RNG states, curve rows, the budget's per-generation log; cpalgo.anchor.export). --json also "
+             "writes where it came from: recipe, settings and changes, commands, transitions, segments, "
+             "training wall time, network, machine, the file's sha256 and the last held-out curve rows.")
+    ex.add_argument("run_dir", metavar="RUN_DIR", help="the run folder (checkpoint.zip, run.json)")
+    ex.add_argument("--out", required=True, metavar="ZIP", help="anchor file to write (replaced atomically)")
+    ex.add_argument("--json", default=None, metavar="JSON", help="also write the provenance record here")
+    ex.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: torch's)")
+    ex.set_defaults(func=cmd_export_anchor)
 
     oc = add("outcomes", "self-play outcome rates of a checkpoint on held-out tasks",
              "Self-play outcome rates (goal, collision, off-road, timeout) of a checkpoint on held-out "

@@ -443,7 +443,9 @@ class CounterPlay(SettingsMixin, RolloutHooksMixin, SearchDriverMixin, Distillat
 
         if data_parallel():  # the run's count: every rank's transitions of this rollout
             local = self.num_timesteps - rollout_start_timesteps
-            self.num_timesteps = rollout_start_timesteps + int(all_reduce_sum(local))
+            total = int(all_reduce_sum(local))
+            self.num_timesteps = rollout_start_timesteps + total
+            self.budget.add_main(total - local)  # the other ranks' main transitions, so it counts the run's too
 
         with th.no_grad():
             # Compute value for the last timestep

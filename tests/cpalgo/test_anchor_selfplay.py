@@ -275,6 +275,7 @@ def test_two_workers_pieces_equal_one_uninterrupted_run(tmp_path: Path, four_wor
     assert whole.num_timesteps == rows[-1]["timesteps"] and whole.batch_size == 16  # 32 over 2 workers
     assert whole.n_envs == 2 * 4  # each worker steps 2 of the 4 worlds
     assert len(whole.resume_state["rank_rng"]) == 2
+    assert whole.budget.main == whole.num_timesteps  # the budget counts every rank's transitions too
     assert json.loads((tmp_path / "whole" / "run.json").read_text())["settings"]["workers"] == 2
 
     pieces = tmp_path / "pieces"
