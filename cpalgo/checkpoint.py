@@ -6,6 +6,7 @@ SB3's ``save`` writes the zip in place; we write to a temp file in the same fold
 
 from __future__ import annotations
 
+import io
 import os
 import zipfile
 from pathlib import Path
@@ -16,15 +17,26 @@ from stable_baselines3.common.callbacks import BaseCallback
 from cpsim.atomic import atomic_path
 
 
-def saved_data_keys(path: str | os.PathLike) -> set[str] | None:
+def saved_data_keys(path: str | os.PathLike | io.BufferedIOBase) -> set[str] | None:
     """Names of the attributes an SB3 checkpoint saved (the keys of its ``data`` entry), or
-    None when ``path`` (``.zip`` appended when missing, as SB3 does) is not such a file.
+    None when ``path`` (``.zip`` appended when missing, as SB3 does; or an open binary file,
+    read from its start and left where it was) is not such a file.
 
     A setting that a checkpoint lacks was added after it was written: its loader can then
     restore the behaviour of that time instead of the new default.
     """
     import json
 
+    if hasattr(path, "seek"):  # a checkpoint in memory, as SB3's load also takes
+        position = path.tell()
+        try:
+            path.seek(0)
+            with zipfile.ZipFile(path) as archive:
+                return set(json.loads(archive.read("data")))
+        except (zipfile.BadZipFile, KeyError, ValueError):
+            return None
+        finally:
+            path.seek(position)
     candidates = [Path(path)] if Path(path).suffix == ".zip" else [Path(path), Path(str(path) + ".zip")]
     for candidate in candidates:
         if candidate.is_file():

@@ -116,16 +116,12 @@ def export_anchor(run_dir: str | os.PathLike, out: str | os.PathLike,
     raw = (run / CHECKPOINT_FILE).read_bytes()  # one version, whatever a running piece does meanwhile
     try:
         with zipfile.ZipFile(io.BytesIO(raw)) as archive:
-            saved_keys = set(json.loads(archive.read("data")))
             names = set(archive.namelist())
             trained_with = archive.read("system_info.txt").decode() if "system_info.txt" in names else None
-        model = CounterPlay.load(io.BytesIO(raw), device="cpu")
+        model = CounterPlay.load(io.BytesIO(raw), device="cpu")  # old settings' defaults applied as from a path
     except Exception as exc:  # noqa: BLE001 - reported with the file name
         raise ValueError(f"run_dir: {str(run / CHECKPOINT_FILE)!r} does not load as a CounterPlay checkpoint "
                          f"({type(exc).__name__}: {exc})") from None
-    for name, value in CounterPlay.LEGACY_SETTINGS.items():  # what CounterPlay.load(path) does for old files
-        if name not in saved_keys:
-            setattr(model, name, value)
     state = getattr(model, "resume_state", None)
     if not isinstance(state, dict) or "rows" not in state:
         raise ValueError(f"run_dir: {str(run / CHECKPOINT_FILE)!r} holds no resume state "

@@ -133,13 +133,13 @@ class SettingsMixin:
             raise ValueError(f"env: counterfactual=True needs a Discrete action space, got {self.action_space}")
 
     def apply_legacy_settings(self, path: Any, keep: Sequence[str] = ()) -> None:
-        """Give every :attr:`LEGACY_SETTINGS` entry that the checkpoint at ``path`` did not
-        save its value of that time (``keep``: names set explicitly by the caller). Used by
+        """Give every :attr:`LEGACY_SETTINGS` entry that the checkpoint at ``path`` (a path or
+        an open binary file) did not save its value of that time (``keep``: names set explicitly by the caller). Used by
         :meth:`CounterPlay.load <cpalgo.counterplay.algorithm.CounterPlay.load>` and by grid resumes
         (``set_parameters`` of a checkpoint)."""
         from cpalgo.checkpoint import saved_data_keys
 
-        saved = saved_data_keys(path) if isinstance(path, (str, os.PathLike)) else None
+        saved = saved_data_keys(path) if isinstance(path, (str, os.PathLike)) or hasattr(path, "seek") else None
         if saved is None:
             return
         for name, value in self.LEGACY_SETTINGS.items():

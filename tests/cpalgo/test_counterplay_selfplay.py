@@ -311,6 +311,7 @@ def test_roots_outlive_their_generation_while_their_episode_runs():
 def test_a_checkpoint_older_than_root_lifetime_comes_back_with_the_behaviour_it_had(tmp_path):
     """Checkpoints written before the setting existed dropped roots every generation: load
     (and a grid resume through apply_legacy_settings) restores that, today's saves keep theirs."""
+    import io
     import json
     import zipfile
 
@@ -330,6 +331,7 @@ def test_a_checkpoint_older_than_root_lifetime_comes_back_with_the_behaviour_it_
     assert CounterPlay.load(new, env=env).root_lifetime == "episode"
     assert CounterPlay.load(old, env=env).root_lifetime == "generation"
     assert CounterPlay.load(old, env=env, root_lifetime="episode").root_lifetime == "episode"
+    assert CounterPlay.load(io.BytesIO(old.read_bytes()), env=env).root_lifetime == "generation"  # in memory too
     fresh = make_model(env)
     fresh.set_parameters(str(old), exact_match=True)
     fresh.apply_legacy_settings(str(old))
