@@ -54,6 +54,7 @@ import inspect
 import json
 import os
 import random
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -891,6 +892,11 @@ class _Ranks:
         import torch.distributed as dist
 
         if dist.is_available() and dist.is_initialized():
+            if not failed:
+                try:  # the ranks leave together, with no collective left in flight
+                    dist.barrier()
+                except RuntimeError:  # a rank that died after its last segment; its exit code names it
+                    pass
             dist.destroy_process_group()
         for process in self.processes:
             process.join(timeout=5 if failed else 120)
@@ -917,6 +923,7 @@ def _rank_main(rank: int, workers: int, store: str, run_dir: str, settings: Anch
     _set_threads(settings)
     dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=workers,
                             timeout=_Ranks.TIMEOUT)
+    finished = False
     try:
         path = Path(run_dir)
         recipe = _recipe_from_run(path)
@@ -926,8 +933,17 @@ def _rank_main(rank: int, workers: int, store: str, run_dir: str, settings: Anch
         else:
             model, state = None, {"segment": 0, "wall_s": 0.0, "rows": []}
         _run_segments(path, settings, recipe, model, state, womd, [], None, None, _silent, env_overrides)
+        dist.barrier()  # matches rank 0's in _Ranks.close
+        finished = True
     finally:  # an exception's traceback is printed by multiprocessing; rank 0 sees the closed connection
         dist.destroy_process_group()
+    if finished:
+        # Gloo's threads can abort the interpreter's finalisation ("terminate called without an
+        # active exception", exit code -6) after a finished piece; this rank writes nothing, so
+        # it leaves without finalising
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
 
 
 def _silent(_message: str) -> None:
