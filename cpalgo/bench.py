@@ -3,7 +3,7 @@
     python -m cpalgo.bench --worlds 16 --agents 8 --n-steps 64 --generations 3
 
 Four learners train on identical :class:`cpsim.SelfPlayVecEnv` copies (procedural training
-pool, conditions from p_train) with the same network (the shipped anchor's by default) and
+pool, conditions from p_train) with the same network (the shipped jerk anchor ``anchor_imitation.zip``'s by default) and
 the same hyperparameters:
 
 * ``stock``: ``RecurrentPPO`` with sb3-contrib's ``MlpLstmPolicy`` (stepping LSTM);
@@ -65,7 +65,7 @@ def _phase_timer(model: Any) -> dict[str, list[float]]:
 def _anchor_network(anchor: str | None) -> dict[str, Any]:
     from cpalgo.recipes import shipped_path
 
-    path = anchor or str(shipped_path("anchor.zip"))
+    path = anchor or str(shipped_path("anchor_imitation.zip"))
     from stable_baselines3.common.save_util import load_from_zip_file
 
     data, _, _ = load_from_zip_file(path, device="cpu", load_data=True)
@@ -124,7 +124,7 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
         if init_weights:
             from cpalgo.recipes import shipped_path
 
-            model.set_parameters(anchor or str(shipped_path("anchor.zip")), exact_match=False, device=device)
+            model.set_parameters(anchor or str(shipped_path("anchor_imitation.zip")), exact_match=False, device=device)
         models[name] = model
     writers = {name: _attach_memory_logger(m) for name, m in models.items()}
     n_envs = worlds * agents
@@ -365,7 +365,7 @@ def compare_learning(generations: int = 18, worlds: int = 32, agents: int = 8, n
     from cpalgo.recipes import shipped_path
     from cpsim import SelfPlayVecEnv
 
-    path = anchor or str(shipped_path("anchor.zip"))
+    path = anchor or str(shipped_path("anchor_imitation.zip"))
     common = dict(n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs, seed=seed, device="cpu",
                   learning_rate=learning_rate, policy_kwargs=_anchor_network(anchor))
     held_out = _held_out(tasks)

@@ -1,8 +1,10 @@
 """The files that ship inside the package, and the rl-zoo3 style YAML recipes among them.
 
-Shipped files (``cpalgo/shipped/``, inside the wheel): the recipes ``anchor.yml``,
-``anchor_finetune.yml`` and ``counterplay.yml``, the self-play anchor ``anchor.zip`` (with
-its report ``anchor.json``) and the behaviour-cloning traffic model ``bc_traffic.pt``.
+Shipped files (``cpalgo/shipped/``, inside the wheel): the self-play anchor ``anchor.zip``
+(with its record ``anchor.json``; trained by ``anchor_selfplay.yml``, post-trained by
+``counterplay_selfplay.yml``), the earlier teacher-imitation anchor ``anchor_imitation.zip``
+of the jerk dynamics (with ``anchor.yml``, ``anchor_finetune.yml``, ``counterplay.yml``),
+the PPO co-players and the behaviour-cloning traffic model ``bc_traffic.pt``.
 They are read through :mod:`importlib.resources`, so a plain ``pip install`` (no clone,
 no ``-e``) has them. In a clone, ``zoo/`` is a link to that folder; everywhere else the
 commands (``counterplay``, ``python -m cpalgo.zoo``, ``python -m cpalgo.evaluate``) read a
@@ -33,6 +35,10 @@ import yaml
 SELFPLAY_ENV_ID = "cpsim/SelfPlay-v0"
 #: How the README and the repository spell the folder of shipped files.
 ZOO_PREFIX = "zoo"
+#: The anchor commands post-train by default, and its post-training recipe (they resolve to
+#: the shipped files from any folder).
+DEFAULT_ANCHOR = "zoo/anchor.zip"
+DEFAULT_POST_CONFIG = "zoo/counterplay_selfplay.yml"
 _SHIPPED = importlib.resources.files("cpalgo") / "shipped"
 # files extracted from a zipped install stay on disk until the process ends
 _EXTRACTED = contextlib.ExitStack()

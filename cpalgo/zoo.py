@@ -24,7 +24,7 @@ which stays available as ``--log-folder``). ``zoo/NAME`` after ``-f`` / ``--conf
 Example::
 
     python -m cpalgo.zoo train --algo counterplay --env cpsim/SelfPlay-v0 \\
-        -f zoo/counterplay.yml -i zoo/anchor.zip -n 20000
+        -f zoo/counterplay.yml -i zoo/anchor_imitation.zip -n 20000
     python -m cpalgo.zoo enjoy --algo counterplay --env cpsim/SelfPlay-v0 -f logs/ --no-render
 
 ``cpsim/SelfPlay-v0`` names a batched environment: made on its own (``gymnasium.make``)

@@ -1,15 +1,15 @@
-"""Write zoo/anchor.json for the shipped anchor (candidate J16 of its last stage).
+"""Write zoo/anchor_imitation.json for the shipped anchor (candidate J16 of its last stage).
 
     python scripts/anchor_json.py [RECORD]
 
-Reads the previous anchor record (RECORD, default zoo/anchor.json; it becomes
+Reads the previous anchor record (RECORD, default zoo/anchor_imitation.json; it becomes
 ``previous_anchor``: the anchor before, I9F, and nested in it the anchors before that), the
 evaluator summaries in ``docs/results/anchor/seed{0,1,2,3}/`` and ``womd_valid/``
 (``summary_{deployment}.csv``, written by ``scripts/eval_anchor.sh``), the self-play outcomes
 ``outcomes_{condition}.json`` (``counterplay outcomes``) and the training record ``train.json``
 there, and writes the new record through a temporary file and a rename. The previous record is
-zoo/anchor.json as it was before this anchor shipped (``git show
-64e2feb:cpalgo/shipped/anchor.json``); ``scripts/anchor_json_8sets.py`` then adds task sets 4-7.
+zoo/anchor_imitation.json as it was before this anchor shipped (``git show
+64e2feb:cpalgo/shipped/anchor_imitation.json``); ``scripts/anchor_json_8sets.py`` then adds task sets 4-7.
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from cpsim.atomic import atomic_path
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 #: the evaluator summaries, outcomes and training record of the shipped anchor
 HERE = os.path.join(ROOT, "docs", "results", "anchor")
-ANCHOR_JSON = sys.argv[1] if len(sys.argv) > 1 else os.path.join(ROOT, "zoo", "anchor.json")
+ANCHOR_JSON = sys.argv[1] if len(sys.argv) > 1 else os.path.join(ROOT, "zoo", "anchor_imitation.json")
 DEPLOYMENTS = ("normal", "aggressive", "cautious")
 METRICS = ("score", "completion", "at_fault_collision", "non_at_fault_collision", "offroad", "timeout",
            "co_player_harm")
@@ -60,7 +60,7 @@ def main() -> None:
     previous = json.load(open(ANCHOR_JSON))
     if "imitation_parked_fixed_v6" in previous["wall_s"]:
         raise SystemExit(f"{ANCHOR_JSON} already describes J16; restore I9F's record first "
-                         "(git checkout cpalgo/shipped/anchor.json at the commit before)")
+                         "(git checkout cpalgo/shipped/anchor_imitation.json at the commit before)")
     train = json.load(open(os.path.join(HERE, "train.json")))
     sets = {f"seed{s}": load_folder(os.path.join(HERE, f"seed{s}"), ("interactive", "random")) for s in range(4)}
     sets["pooled"] = pool([sets[f"seed{s}"] for s in range(4)])
@@ -69,12 +69,12 @@ def main() -> None:
     p = sets["pooled"]
     sep = {s: round(100 * (p["aggressive"][s]["completion"] - p["normal"][s]["completion"]), 1)
            for s in ("interactive", "random")}
-    # as run: --init zoo/anchor.zip (then I9F) --out runs/tv10/J16.zip; written as a chain that
+    # as run: --init zoo/anchor_imitation.zip (then I9F) --out runs/tv10/J16.zip; written as a chain that
     # starts from the file the previous command wrote
     command = (train["command"].split("bin/", 1)[-1]  # drop the interpreter's path
-               .replace("--init zoo/anchor.zip", "--init runs/tv5/I9F.zip")
-               .replace("--out runs/tv10/J16.zip", "--out zoo/anchor.zip"))
-    earlier = [c.replace("--out zoo/anchor.zip", "--out runs/tv5/I9F.zip") for c in previous["commands"]]
+               .replace("--init zoo/anchor_imitation.zip", "--init runs/tv5/I9F.zip")
+               .replace("--out runs/tv10/J16.zip", "--out zoo/anchor_imitation.zip"))
+    earlier = [c.replace("--out zoo/anchor_imitation.zip", "--out runs/tv5/I9F.zip") for c in previous["commands"]]
     anchor = {
         "description": (
             "Reward-conditioned, style-responsive anchor (shipped 2026-12-03): the "
@@ -104,12 +104,12 @@ def main() -> None:
                      f"{sep['random']:+.1f} (>= +10), cautious at-fault "
                      f"{100 * p['cautious']['interactive']['at_fault_collision']:.1f} / "
                      f"{100 * p['cautious']['random']['at_fault_collision']:.1f} % (<= normal's)."),
-            "command": ("python -m cpalgo.evaluate --policy anchor=zoo/anchor.zip --traffic-policy zoo/anchor.zip "
+            "command": ("python -m cpalgo.evaluate --policy anchor=zoo/anchor_imitation.zip --traffic-policy zoo/anchor_imitation.zip "
                         "--split both --n 100 --seed SEED --deploy DEPLOY --no-plots"),
             **sets,
         },
         "evaluator_womd_valid": {
-            "command": ("python -m cpalgo.evaluate --policy anchor=zoo/anchor.zip --traffic-policy zoo/anchor.zip "
+            "command": ("python -m cpalgo.evaluate --policy anchor=zoo/anchor_imitation.zip --traffic-policy zoo/anchor_imitation.zip "
                         "--pool ../shared/data/womd/valid --n 100 --deploy DEPLOY --no-plots"),
             "coplayers": "vehicles (every vehicle present at t0 except the ego)",
             "deploy": womd,

@@ -1,4 +1,4 @@
-"""Add the shipped anchor's four fresh task sets to zoo/anchor.json.
+"""Add the shipped anchor's four fresh task sets to zoo/anchor_imitation.json.
 
     python scripts/anchor_json_8sets.py [RECORD]
 

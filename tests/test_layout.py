@@ -98,7 +98,7 @@ def _shipped_checkpoints() -> list[str]:
 
 
 def test_the_shipped_checkpoints_are_found():
-    assert {"anchor.zip", "anchor_fast.zip", "bc_traffic.pt"} <= set(_shipped_checkpoints())
+    assert {"anchor.zip", "anchor_imitation.zip", "anchor_fast.zip", "bc_traffic.pt"} <= set(_shipped_checkpoints())
 
 
 @pytest.mark.parametrize("name", _shipped_checkpoints())

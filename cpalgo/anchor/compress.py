@@ -338,7 +338,7 @@ def add_command(add: Callable[..., Any]) -> None:
             "outputs, then distill the anchor into it (cpalgo.anchor.compress.distill_policy: DAgger rounds on "
             "the anchor's action probabilities and values). Writes the checkpoint and a JSON report "
             "beside it.")
-    p.add_argument("--anchor", default="zoo/anchor.zip", metavar="ZIP", help="flat anchor checkpoint")
+    p.add_argument("--anchor", default="zoo/anchor_imitation.zip", metavar="ZIP", help="flat anchor checkpoint")
     p.add_argument("--out", default="runs/anchor_fast/anchor.zip", metavar="ZIP", help="checkpoint to write")
     p.add_argument("--init", default=None, metavar="ZIP",
                    help="continue distilling this earlier output (skips the factorisation)")

@@ -1,7 +1,7 @@
 """Teacher-regularised self-play PPO: the anchor's PPO stage that keeps the teacher's styles.
 
 Plain PPO from the imitation warm start improves completion but erases the style separation
-the reactive teacher gave (``zoo/anchor.json``: 600k transitions move self-play goals from
+the reactive teacher gave (``zoo/anchor_imitation.json``: 600k transitions move self-play goals from
 20.6 / 34.6 / 65.4 % to 63.8 / 70.4 / 67.9 %, cautious / normal / aggressive). The reward
 terms that differ between styles are small next to the goal reward, so PPO pulls every
 condition towards one behaviour. :class:`TeacherPPO` adds the teacher's actions as an

@@ -17,13 +17,9 @@ from cpalgo.common.anchor_network import anchor_network
 from cpalgo.common.checks import UsageError, brief, check_out_path
 from cpalgo.common.recipe_setup import check_algorithm_arguments, make_env
 from cpalgo.evaluate.held_out import held_out_outcomes
-from cpalgo.recipes import load_recipe, resolve_path
+from cpalgo.recipes import DEFAULT_ANCHOR, DEFAULT_POST_CONFIG, load_recipe, resolve_path
 
 __all__ = ["DEFAULT_ANCHOR", "DEFAULT_POST_CONFIG", "post_train", "write_searches"]
-
-#: Defaults, spelled as the README spells them (they resolve to the shipped files).
-DEFAULT_ANCHOR = "zoo/anchor.zip"
-DEFAULT_POST_CONFIG = "zoo/counterplay.yml"
 
 
 def post_train(anchor: str | os.PathLike = DEFAULT_ANCHOR, config: str | os.PathLike = DEFAULT_POST_CONFIG,

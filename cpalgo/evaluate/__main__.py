@@ -79,10 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "the goal test is the same for every condition (2 m, no speed limit)")
     p.add_argument("--traffic-policy", default=None,
                    help="co-player checkpoint for aggressive / normal / cautious / mix "
-                        "(default zoo/anchor.zip, the shipped self-play anchor)")
+                        "(default: the shipped anchor of the dynamics, zoo/anchor.zip in classic, "
+                        "zoo/anchor_imitation.zip in jerk)")
     p.add_argument("--bc-policy", default=None, help="BC traffic model for 'bc' (default zoo/bc_traffic.pt)")
     p.add_argument("--ppo-policy", default=None,
-                   help="self-play PPO co-player checkpoint for 'selfplay' (default zoo/ppo_traffic.zip; "
+                   help="self-play PPO co-player checkpoint for 'selfplay' (default: the shipped one of the "
+                        "dynamics, zoo/ppo_traffic_classic.zip in classic, zoo/ppo_traffic.zip in jerk; "
                         "without it the --traffic-policy under p_train conditions)")
     p.add_argument("--dynamics", choices=("jerk", "classic"), default=None,
                    help="simulator dynamics (default: that of the learned policies, read from their action "
@@ -155,7 +157,8 @@ def run(argv: Sequence[str] | None = None) -> dict:
         "pool": str(args.pool), "split": args.split, "n": args.n, "seed": args.seed,
         "deploy": deploy if isinstance(deploy, str) else list(deploy), "regimes": regimes,
         "traffic_policy": args.traffic_policy, "bc_policy": args.bc_policy, "coplayers": args.coplayers,
-        "ppo_policy": args.ppo_policy or (str(R.DEFAULT_PPO_PATH) if ev.ppo_policy is not None else None),
+        "ppo_policy": args.ppo_policy or (str(ev.default_paths["ppo_policy"]) if "ppo_policy" in ev.default_paths
+                                          else None),
         "dynamics": ev.dynamics,
         "dynamics_from": {None: "default", "dynamics": "--dynamics"}.get(ev.dynamics_source, ev.dynamics_source),
         **({"notes": dict(ev.notes)} if ev.notes else {}),

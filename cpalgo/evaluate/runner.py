@@ -68,11 +68,24 @@ EGO_CONTROLLERS: dict[str, int] = {"replay": int(Controller.REPLAY), "expert": i
                                    "idm": int(Controller.IDM), "static": int(Controller.STATIC)}
 #: Default shipped BC traffic model (inside the package, ``zoo/bc_traffic.pt`` in a clone).
 DEFAULT_BC_PATH = shipped_path("bc_traffic.pt")
-#: The shipped reward-conditioned self-play anchor: default co-player of the policy regimes.
-DEFAULT_TRAFFIC_PATH = shipped_path("anchor.zip")
-#: The shipped self-play PPO policy (another recipe and seed than the anchor, trained under one
-#: fixed condition): default co-player of the ``selfplay`` (PPO) regime.
-DEFAULT_PPO_PATH = shipped_path("ppo_traffic.zip") if "ppo_traffic.zip" in shipped_names() else Path("zoo/ppo_traffic.zip")
+
+
+def _shipped_or_zoo(name: str) -> Path:
+    return shipped_path(name) if name in shipped_names() else Path("zoo", name)
+
+
+#: The default co-player of the policy regimes, per dynamics model: the shipped
+#: reward-conditioned anchor of that dynamics (the self-play anchor in classic, the
+#: teacher-imitation anchor in jerk). Before a policy decides the dynamics, the first
+#: entry's file decides them.
+DEFAULT_TRAFFIC_PATHS: dict[str, Path] = {"classic": _shipped_or_zoo("anchor.zip"),
+                                          "jerk": _shipped_or_zoo("anchor_imitation.zip")}
+#: The default co-player of the ``selfplay`` (PPO) regime, per dynamics model: a shipped
+#: self-play PPO policy of another recipe and seed than the anchor, trained under one fixed
+#: condition. Without one for the evaluation's dynamics, the regime's co-players are the
+#: traffic policy under p_train conditions (a note says so).
+DEFAULT_PPO_PATHS: dict[str, Path] = {"classic": _shipped_or_zoo("ppo_traffic_classic.zip"),
+                                      "jerk": _shipped_or_zoo("ppo_traffic.zip")}
 #: Agent slots per world by default: every agent present at t0, up to BehaviorBench's 128.
 MAX_EVAL_AGENTS = 128
 
@@ -712,16 +725,21 @@ class Evaluator:
         #: what this evaluation does other than asked (e.g. the selfplay co-player fallback)
         self.notes: dict[str, str] = {}
         needs_traffic = {"aggressive", "normal", "cautious", "mix"} & set(self.regimes)
+        #: the default co-player files this evaluation loaded (argument -> path)
+        self.default_paths: dict[str, Path] = {}
         if needs_traffic and traffic_policy is None:
-            traffic_policy = self._default_coplayer(DEFAULT_TRAFFIC_PATH, "traffic_policy", needs_traffic)
-        if "selfplay" in self.regimes and ppo_policy is None and DEFAULT_PPO_PATH.is_file():
-            default = load_model(DEFAULT_PPO_PATH, "ppo_policy")
-            if self._agrees(default, "ppo_policy", DEFAULT_PPO_PATH):
-                ppo_policy = default
+            traffic_policy = self._default_coplayer(DEFAULT_TRAFFIC_PATHS, "traffic_policy", needs_traffic)
+        if "selfplay" in self.regimes and ppo_policy is None:
+            path = self._default_path(DEFAULT_PPO_PATHS)
+            default = load_model(path, "ppo_policy") if path is not None else None
+            if default is not None and self._agrees(default, "ppo_policy", path):
+                ppo_policy, self.default_paths["ppo_policy"] = default, path
             else:
+                found = (f"the default PPO co-player {path.name} acts in "
+                         f"{_describe(policy_dynamics(default, 'ppo_policy'))}" if default is not None
+                         else "no PPO co-player ships for it")
                 self.notes["selfplay"] = (
-                    f"the default PPO co-player {DEFAULT_PPO_PATH.name} acts in "
-                    f"{_describe(policy_dynamics(default, 'ppo_policy'))}, this evaluation in {self.dynamics}: "
+                    f"this evaluation acts in {self.dynamics} and {found}: "
                     "'selfplay' co-players are the traffic policy under p_train conditions instead "
                     f"(give a {self.dynamics} --ppo-policy / ppo_policy for the PPO column)")
                 print(f"warning: {self.notes['selfplay']}", file=sys.stderr)
@@ -729,7 +747,7 @@ class Evaluator:
         if "selfplay" in self.regimes and ppo_policy is None:
             needs_traffic.add("selfplay")
             if traffic_policy is None:
-                traffic_policy = self._default_coplayer(DEFAULT_TRAFFIC_PATH, "traffic_policy", needs_traffic)
+                traffic_policy = self._default_coplayer(DEFAULT_TRAFFIC_PATHS, "traffic_policy", needs_traffic)
         if needs_traffic and traffic_policy is None:
             raise ValueError(f"traffic_policy: regimes {sorted(needs_traffic)} need a co-player policy "
                              "(the self-play / conditioned anchor checkpoint)")
@@ -791,12 +809,22 @@ class Evaluator:
             return True
         return False
 
-    def _default_coplayer(self, path: Path, argument: str, regimes: set[str]) -> Any:
-        """The default traffic policy (None when missing); ``ValueError`` when it acts in
-        other dynamics than the evaluation's."""
-        if not path.is_file():
+    def _default_path(self, defaults: Mapping[str, Path]) -> Path | None:
+        """The default file for the evaluation's dynamics (None when missing); while nothing
+        has decided the dynamics, the first default file that exists."""
+        if self.dynamics_source is not None:
+            path = defaults.get(self.dynamics)
+            return path if path is not None and path.is_file() else None
+        return next((p for p in defaults.values() if p.is_file()), None)
+
+    def _default_coplayer(self, defaults: Mapping[str, Path], argument: str, regimes: set[str]) -> Any:
+        """The default traffic policy for the evaluation's dynamics (None when missing);
+        ``ValueError`` when it acts in other dynamics than the evaluation's."""
+        path = self._default_path(defaults)
+        if path is None:
             return None
         model = load_model(path, argument)
+        self.default_paths[argument] = path
         if not self._agrees(model, argument, path):
             raise ValueError(f"{argument}: regimes {sorted(regimes)} need a co-player policy; the default "
                              f"{path.name} acts in {_describe(policy_dynamics(model, argument))}, but "

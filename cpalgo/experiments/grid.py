@@ -4,7 +4,7 @@ A grid file is YAML (``zoo/experiments/paper_small.yml`` is the reference)::
 
     name: paper_small
     anchor: zoo/anchor.zip              # checkpoint every method starts from
-    recipe: zoo/counterplay.yml         # PPO settings, network and env shared by every method
+    recipe: zoo/counterplay_selfplay.yml   # PPO settings, network and env shared by every method
     budget: 150000                      # B_post of every run (live agent transitions)
     seeds: [0, 1, 2]
     methods: all                        # or a list of registry names (counterplay methods)
@@ -51,6 +51,8 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import yaml
+
+from cpalgo.recipes import DEFAULT_POST_CONFIG
 
 __all__ = ["GridError", "GridConfig", "EvalSettings", "RunSpec", "load_grid", "resolve_grid_path", "ANCHOR"]
 
@@ -350,7 +352,7 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         raise _fail(where, "methods", "lists a method twice")
     budget = _whole(doc["budget"], where, "budget", 1)
     anchor = _checkpoint(_existing(doc["anchor"], where, "anchor", base, "checkpoint"), where, "anchor")
-    recipe_path = _existing(doc.get("recipe", "zoo/counterplay.yml"), where, "recipe", base, "recipe")
+    recipe_path = _existing(doc.get("recipe", DEFAULT_POST_CONFIG), where, "recipe", base, "recipe")
     from cpalgo.recipes import load_recipe
 
     try:

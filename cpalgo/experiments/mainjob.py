@@ -22,6 +22,7 @@ from typing import Any
 
 from cpalgo.counterplay.search import ADMISSION_VERDICTS
 from cpalgo.experiments.grid import ANCHOR, GridConfig, load_grid
+from cpalgo.recipes import DEFAULT_ANCHOR, DEFAULT_POST_CONFIG
 
 __all__ = ["main_job_grid", "run_main_job", "main_job_summary"]
 
@@ -127,7 +128,7 @@ def main_job_summary(out: str | os.PathLike, grid: GridConfig) -> dict[str, Any]
     return doc
 
 
-def run_main_job(anchor: str = "zoo/anchor.zip", config: str = "zoo/counterplay.yml", out: str = "runs/counterplay",
+def run_main_job(anchor: str = DEFAULT_ANCHOR, config: str = DEFAULT_POST_CONFIG, out: str = "runs/counterplay",
                  budget: int | None = None, seed: int = 0, eval_tasks: int = 50, worlds: int | None = None,
                  torch_threads: int = 1, progress: bool = True, scenarios: int | None = None) -> dict[str, Any]:
     """Run the main job (see the module docstring); returns the summary dict (its

@@ -360,9 +360,9 @@ def test_run_takes_the_anchor_and_recipe(monkeypatch):
                      "--no-progress"]) == 0
     assert seen["anchor"] == resolve_path("zoo/anchor_fast.zip")
     assert seen["config"] == resolve_path("zoo/counterplay_selfplay.yml")
-    assert cli.main(["run", "--no-progress"]) == 0  # the defaults: the shipped anchor and zoo/counterplay.yml
+    assert cli.main(["run", "--no-progress"]) == 0  # the defaults: the self-play anchor and its recipe
     assert seen["anchor"] == resolve_path("zoo/anchor.zip")
-    assert seen["config"] == resolve_path("zoo/counterplay.yml")
+    assert seen["config"] == resolve_path("zoo/counterplay_selfplay.yml")
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -454,17 +454,19 @@ def test_recipes_keep_normalize_and_vec_env_wrappers(tmp_path, capsys):
     assert "no.such.Wrapper" in usage_error(capsys, ["train-anchor", "--config", str(bad), "--timesteps", "1"])
 
 
-@pytest.mark.parametrize("name", ["anchor.zip", "anchor_fast.zip"])
-def test_shipped_anchors_load_fit_the_size_limit_and_follow_their_style(name):
-    """Both shipped anchors (flat and compressed) respond to the style fields of their
-    condition: on the same held-out tasks under the evaluation goal criterion, aggressive
-    agents reach their goal far more often than cautious ones (256 tasks: 83 against 27 %)."""
-    from sb3_contrib import RecurrentPPO
+@pytest.mark.parametrize("name, gap", [("anchor.zip", 0.1), ("anchor_imitation.zip", 0.2), ("anchor_fast.zip", 0.2)])
+def test_shipped_anchors_load_fit_the_size_limit_and_follow_their_style(name, gap):
+    """Every shipped anchor responds to the style fields of its condition: on the same
+    held-out tasks under the evaluation goal criterion, aggressive agents reach their goal
+    more often than cautious ones (the self-play anchor's curve: 97 against 77 %; the
+    teacher-imitation anchors on 256 tasks: 83 against 27 %)."""
+    from cpalgo.evaluate.runner import load_model, policy_dynamics
 
     path = shipped_path(name)
     assert path.stat().st_size <= 10 * 2**20  # the anchor issue's limit
-    model = RecurrentPPO.load(path, device="cpu")
+    model = load_model(path, "anchor")
+    assert policy_dynamics(model, "anchor") == ("classic" if name == "anchor.zip" else "jerk")
     if name == "anchor_fast.zip":
         assert type(model.policy.features_extractor).__name__ == "LinearEncoder"
     goal = {c: cli._outcomes(model, 12, 8, condition=c).goal for c in ("aggressive", "cautious")}
-    assert goal["aggressive"] > goal["cautious"] + 0.2, goal
+    assert goal["aggressive"] > goal["cautious"] + gap, goal

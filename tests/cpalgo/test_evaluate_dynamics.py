@@ -110,7 +110,7 @@ def test_mixed_dynamics_are_refused_naming_the_argument(two, ckpts, monkeypatch)
     with pytest.raises(ValueError, match=r"acts in classic dynamics .* jerk dynamics"):
         ev.run(ckpts["classic"])
     # the default co-player policy must act in the evaluation's dynamics
-    monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATH", R.Path(ckpts["jerk"]))
+    monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATHS", {"classic": R.Path(ckpts["jerk"])})  # a mis-shipped default
     with pytest.raises(ValueError, match=r"traffic_policy: .*default jerk\.zip acts in jerk"):
         R.Evaluator(two, ["normal"], policies=[ckpts["classic"]], config=cfg)
 
@@ -176,7 +176,7 @@ def test_bc_model_follows_the_simulator_dynamics(two, ckpts, tmp_path):
 def test_jerk_ppo_coplayer_falls_back_under_classic(two, ckpts, tmp_path, capsys, monkeypatch):
     import cpsim
 
-    monkeypatch.setattr(R, "DEFAULT_PPO_PATH", R.Path(ckpts["jerk"]))
+    monkeypatch.setattr(R, "DEFAULT_PPO_PATHS", {"classic": R.Path(ckpts["jerk"]), "jerk": R.Path(ckpts["jerk"])})
     cfg = R.EvalConfig(progress=False)
     traffic = R.load_model(ckpts["classic"])
     ev = R.Evaluator(two, ["selfplay"], traffic_policy=traffic, config=cfg)
@@ -194,7 +194,7 @@ def test_jerk_ppo_coplayer_falls_back_under_classic(two, ckpts, tmp_path, capsys
     assert jerk.ppo_policy is not None and not jerk.notes
     assert np.array_equal(jerk._drivers["selfplay"].condition, cpsim.profile("normal"))
     # with no learned policy given, the default co-player decides (here a classic one)
-    monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATH", R.Path(ckpts["classic"]))
+    monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATHS", {"classic": R.Path(ckpts["classic"])})
     ev = R.Evaluator(two, ["selfplay", "normal"], config=cfg)
     assert ev.dynamics == "classic" and ev.ppo_policy is None and "selfplay" in ev.notes
     assert "classic.zip" in ev.dynamics_source
@@ -209,6 +209,23 @@ def test_jerk_ppo_coplayer_falls_back_under_classic(two, ckpts, tmp_path, capsys
     run = json.loads((out / "summary.json").read_text())["run"]
     assert run["dynamics"] == "classic" and run["ppo_policy"] is None and "p_train" in run["notes"]["selfplay"]
     assert sum(line.startswith("warning:") for line in capsys.readouterr().err.splitlines()) == 1
+
+
+def test_default_coplayers_follow_the_dynamics(two, ckpts, capsys):
+    """Without a co-player given, each dynamics gets its own shipped anchor as traffic, and
+    classic gets no jerk PPO co-player (the selfplay regime falls back, with a note)."""
+    cfg = R.EvalConfig(progress=False)
+    classic = R.Evaluator(two, ["normal", "selfplay"], policies=[ckpts["classic"]], config=cfg)
+    assert classic.default_paths["traffic_policy"].name == "anchor.zip"
+    assert R.policy_dynamics(classic.traffic_policy, "traffic_policy") == "classic"
+    if not R.DEFAULT_PPO_PATHS["classic"].is_file():
+        assert classic.ppo_policy is None and "no PPO co-player ships" in classic.notes["selfplay"]
+    jerk = R.Evaluator(two, ["normal", "selfplay"], policies=[ckpts["jerk"]], config=cfg)
+    assert jerk.default_paths["traffic_policy"].name == "anchor_imitation.zip"
+    assert jerk.default_paths["ppo_policy"].name == "ppo_traffic.zip" and not jerk.notes
+    # nothing learned given: the first default (the self-play anchor) decides the dynamics
+    assert R.Evaluator(two, ["normal"], config=cfg).dynamics == "classic"
+    capsys.readouterr()
 
 
 def test_held_out_outcomes_use_the_model_dynamics(ckpts):

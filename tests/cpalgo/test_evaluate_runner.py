@@ -184,7 +184,7 @@ def test_bad_inputs(tasks, tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="must return 1 integer actions"):
         R.Evaluator(tasks[:1], ["idm"], config=R.EvalConfig(progress=False)).run(lambda obs: np.zeros(3))
     # without the shipped anchor, the policy regimes need an explicit co-player policy
-    monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATH", tmp_path / "no-anchor.zip")
+    monkeypatch.setattr(R, "DEFAULT_TRAFFIC_PATHS", {"classic": tmp_path / "no-anchor.zip", "jerk": tmp_path / "no.zip"})
     with pytest.raises(ValueError, match="traffic_policy"):
         R.Evaluator(tasks, ["normal"])
     with pytest.raises(ValueError, match="profile"):
@@ -288,7 +288,7 @@ def test_selfplay_regime_uses_the_separate_ppo_policy(tasks, tmp_path, monkeypat
     sp = ev._drivers["selfplay"]
     assert sp.model is ppo and np.array_equal(sp.condition, cpsim.profile("normal"))
     assert ev._drivers["normal"].model is anchor
-    monkeypatch.setattr(R, "DEFAULT_PPO_PATH", tmp_path / "no-ppo.zip")
+    monkeypatch.setattr(R, "DEFAULT_PPO_PATHS", {"classic": tmp_path / "no-ppo.zip", "jerk": tmp_path / "no-ppo.zip"})
     ev = R.Evaluator(tasks[:1], ["selfplay"], traffic_policy=anchor, config=R.EvalConfig(progress=False))
     assert ev._drivers["selfplay"].model is anchor and ev._drivers["selfplay"].condition is None
     with pytest.raises(ValueError, match="ppo_policy: checkpoint"):

@@ -92,9 +92,12 @@ def test_registering_a_method_is_one_line_and_checked():
 
 
 def test_build_method_finds_the_shipped_anchor_from_any_folder(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # no zoo/ here: zoo/anchor.zip names the file shipped in the package
-    env = SelfPlayVecEnv(num_worlds=1, max_agents=2, num_scenarios=1)
+    monkeypatch.chdir(tmp_path)  # no zoo/ here: zoo/NAME names the file shipped in the package
+    env = SelfPlayVecEnv(num_worlds=1, max_agents=2, num_scenarios=1, dynamics="classic")
     model = build_method("ppo-continue", "zoo/anchor.zip", env, algo_kwargs={"n_steps": 8, "batch_size": 8})
+    assert type(model.policy) is BehaviorLstmPolicy and model.action_space.n == 91  # the self-play anchor
+    jerk = SelfPlayVecEnv(num_worlds=1, max_agents=2, num_scenarios=1)
+    model = build_method("ppo-continue", "zoo/anchor_imitation.zip", jerk, algo_kwargs={"n_steps": 8, "batch_size": 8})
     assert model.policy.lstm_actor.hidden_size == 128  # the anchor's network, weights loaded
     # saved as sb3-contrib's class, built as its fused subclass (the same network, faster)
     assert type(model.policy) is FusedMlpLstmPolicy
