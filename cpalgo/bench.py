@@ -97,7 +97,7 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
         worlds, agents: ``SelfPlayVecEnv`` size (slots = worlds x agents).
         n_steps, batch_size, n_epochs: PPO settings shared by every learner.
         anchor: checkpoint whose network (and, with ``init_weights``, weights) every
-            learner uses; default the shipped anchor.
+            learner uses; default the teacher-imitation anchor (``zoo/anchor_imitation.zip``).
         threads: torch intra-op threads (None: leave torch's choice).
         device: ``"cpu"`` or ``"cuda[:n]"``: simulator, policy, rollout buffer and branch
             search of every learner on that device.

@@ -81,14 +81,16 @@ from cpsim.conditions import PANEL
 
 __all__ = ["CounterPlay", "FAILURE_OUTCOMES", "ANCHOR_NETWORK"]
 
-#: The shipped anchor's network, CounterPlay's default ``policy_kwargs``.
+#: The teacher-imitation anchor's network (``zoo/anchor_imitation.zip``), CounterPlay's default
+#: ``policy_kwargs`` for the sb3-contrib-shaped policies.
 ANCHOR_NETWORK: dict[str, Any] = dict(lstm_hidden_size=128, enable_critic_lstm=False,
                                       net_arch=dict(pi=[128, 128], vf=[128, 128]))
 
 
 def _default_network(policy: Any) -> dict[str, Any]:
-    """``policy_kwargs`` when none are given: the shipped anchor's network for the
-    sb3-contrib-shaped policies, the class's own defaults for BehaviorBench's shape."""
+    """``policy_kwargs`` when none are given: the teacher-imitation anchor's network for the
+    sb3-contrib-shaped policies, the class's own defaults (the self-play anchor's) for
+    BehaviorBench's shape."""
     if policy == "BehaviorLstmPolicy" or (isinstance(policy, type) and issubclass(policy, BehaviorLstmPolicy)):
         return {}
     return deepcopy(ANCHOR_NETWORK)

@@ -666,8 +666,8 @@ class Evaluator:
             ``normal``, ``cautious`` and ``mix`` (and ``selfplay`` when there is no PPO
             policy); needed only for those.
         ppo_policy: model or checkpoint path for ``selfplay``, driven under the normal
-            profile (default :data:`DEFAULT_PPO_PATH` when it exists and acts in the
-            evaluation's dynamics; otherwise ``traffic_policy`` under p_train conditions,
+            profile (default: the :data:`DEFAULT_PPO_PATHS` file of the evaluation's dynamics
+            when it exists; otherwise ``traffic_policy`` under p_train conditions,
             recorded in :attr:`notes` and each result's ``meta``, with one warning line).
         bc_policy: model or ``.pt`` path for ``bc`` (default :data:`DEFAULT_BC_PATH`); a
             ``targets``-head model drives under the evaluation's dynamics

@@ -24,7 +24,7 @@ A grid file is YAML (``zoo/experiments/paper_small.yml`` is the reference)::
       pool: procedural                  # or a folder of WOMD files
       seed: 0                           # task set; a list ([0, 1]) evaluates every run on each
       traffic_policy: null              # co-player checkpoint (default: the anchor)
-      ppo_policy: null                  # selfplay regime's PPO co-player (default: zoo/ppo_traffic.zip)
+      ppo_policy: null                  # selfplay regime's PPO co-player (default: the shipped one of the dynamics)
       coplayers: vehicles               # who follows the regime: vehicles (BehaviorBench) or controllable
       max_worlds: 256
 

@@ -7,6 +7,7 @@ import io
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -202,18 +203,22 @@ def test_shipped_paper_grid_is_valid_and_holds_every_method():
                                                                "distill-cautious", "counterplay"}
 
 
-def test_selfplay_paper_grids_hold_every_method_on_the_selfplay_recipe(files):
-    """zoo/experiments/paper_selfplay*.yml: every method x 3 seeds at 1 % and 5 % of a 200M
-    anchor, 100 tasks per split, all regimes, paper_small's deployments, from
-    zoo/counterplay_selfplay.yml (a tiny anchor in place of the training run's checkpoint)."""
-    from cpalgo.experiments.grid import resolve_grid_path
-    from cpalgo.methods import method_names
+def test_selfplay_paper_grids_hold_every_method_on_the_selfplay_recipe():
+    """zoo/experiments/paper_selfplay*.yml: every method x 3 seeds from the shipped self-play
+    anchor at 1 % and 5 % of its training transitions (zoo/anchor.json), 100 tasks per split,
+    all regimes, paper_small's deployments, with zoo/counterplay_selfplay.yml."""
+    import json
 
+    from cpalgo.methods import method_names
+    from cpalgo.recipes import shipped_path
+
+    transitions = json.loads(shipped_path("anchor.json").read_text())["num_timesteps"]
     small = load_grid("zoo/experiments/paper_small.yml")
-    for name, budget in (("paper_selfplay", 2_000_000), ("paper_selfplay_5pct", 10_000_000)):
-        doc = yaml.safe_load(open(resolve_grid_path(f"zoo/experiments/{name}.yml"), encoding="utf-8"))
-        grid = load_grid({**doc, "anchor": files["anchor"]})
-        assert grid.budget == budget and grid.seeds == (0, 1, 2) and set(grid.methods) == set(method_names())
+    for name, share in (("paper_selfplay", 0.01), ("paper_selfplay_5pct", 0.05)):
+        grid = load_grid(f"zoo/experiments/{name}.yml")
+        assert Path(grid.anchor).resolve() == shipped_path("anchor.zip").resolve()
+        assert abs(grid.budget - share * transitions) <= 0.01 * share * transitions, (name, grid.budget)
+        assert grid.seeds == (0, 1, 2) and set(grid.methods) == set(method_names())
         assert grid.recipe.endswith("counterplay_selfplay.yml")
         assert grid.evaluation.tasks == 100 and len(grid.evaluation.regimes) == 8
         assert grid.evaluation.task_sets == (0, 1)  # 100 tasks per split on 2 task sets
