@@ -307,6 +307,29 @@ def _enjoy_n_envs(args: list[str]) -> list[str]:
     return [*args, "--n-envs", "64"]
 
 
+def _no_zoo_evaluation(args: list[str]) -> list[str]:
+    """rl-zoo3's ``EvalCallback`` cannot evaluate the batched self-play env: it builds its
+    env without the recipe's ``env_kwargs`` (another dynamics than the policy's) and saves
+    per-slot episode lists of varying length. Training on ``cpsim/SelfPlay-v0`` therefore
+    runs with ``--eval-freq -1``; an explicit positive ``--eval-freq`` is a ``ValueError``
+    that names the evaluator to use instead."""
+    for i, a in enumerate(args):
+        value = args[i + 1] if a == "--eval-freq" and i + 1 < len(args) else (
+            a.split("=", 1)[1] if a.startswith("--eval-freq=") else None)
+        if value is None:
+            continue
+        try:
+            freq = int(value)
+        except ValueError:
+            raise ValueError(f"--eval-freq: expected an integer, got {value!r}") from None
+        if freq > 0:
+            raise ValueError(f"--eval-freq {freq}: rl-zoo3's evaluation callback cannot evaluate "
+                             f"{SELFPLAY_ENV_ID} (a batched self-play env); leave it out and evaluate the "
+                             "saved model with python -m cpalgo.evaluate")
+        return args
+    return [*args, "--eval-freq", "-1"]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in ("train", "enjoy"):
@@ -336,6 +359,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         rl_zoo3.exp_manager.VecNormalize = SelfPlayVecNormalize  # type: ignore[attr-defined]
         if command == "enjoy":
             rest = _enjoy_n_envs(rest)
+        else:
+            try:
+                rest = _no_zoo_evaluation(rest)
+            except ValueError as exc:
+                print(f"python -m cpalgo.zoo train: error: {exc}", file=sys.stderr)
+                return 2
     sys.argv = [f"rl_zoo3.{command}", *rest]
     if command == "train":
         import rl_zoo3.train

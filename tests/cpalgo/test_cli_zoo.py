@@ -244,9 +244,17 @@ def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch, 
     recipe = tiny_recipe(tmp_path, ZOO_DIR / "counterplay.yml")
     monkeypatch.chdir(tmp_path)
     logs = tmp_path / "logs"
+    # rl-zoo3's evaluation callback cannot evaluate the batched env: refused when asked for,
+    # off by default
+    assert zoo.main(["train", "--algo", "counterplay", "--env", SELFPLAY_ENV_ID, "-f", str(recipe),
+                     "--log-folder", str(logs), "--eval-freq", "256"]) == 2
+    assert "--eval-freq 256" in capsys.readouterr().err and not logs.exists()
     code = zoo.main(["train", "--algo", "counterplay", "--env", SELFPLAY_ENV_ID, "-f", str(recipe),
                      "--log-folder", str(logs), "-n", "128", "--seed", "1", "--eval-freq", "-1"])
     assert code == 0
+    code = zoo.main(["train", "--algo", "counterplay", "--env", SELFPLAY_ENV_ID, "-f", str(recipe),
+                     "--log-folder", str(logs), "-n", "128", "--seed", "2"])
+    assert code == 0 and len(list(logs.glob("counterplay/*/*.zip"))) == 2
     saved = list(logs.glob("counterplay/*/*.zip"))
     assert saved, list(logs.rglob("*"))
     from cpalgo import CounterPlay
