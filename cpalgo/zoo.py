@@ -313,11 +313,13 @@ def _no_zoo_evaluation(args: list[str]) -> list[str]:
     per-slot episode lists of varying length. Training on ``cpsim/SelfPlay-v0`` therefore
     runs with ``--eval-freq -1``; an explicit positive ``--eval-freq`` is a ``ValueError``
     that names the evaluator to use instead."""
+    given = False
     for i, a in enumerate(args):
         value = args[i + 1] if a == "--eval-freq" and i + 1 < len(args) else (
             a.split("=", 1)[1] if a.startswith("--eval-freq=") else None)
         if value is None:
             continue
+        given = True
         try:
             freq = int(value)
         except ValueError:
@@ -326,8 +328,7 @@ def _no_zoo_evaluation(args: list[str]) -> list[str]:
             raise ValueError(f"--eval-freq {freq}: rl-zoo3's evaluation callback cannot evaluate "
                              f"{SELFPLAY_ENV_ID} (a batched self-play env); leave it out and evaluate the "
                              "saved model with python -m cpalgo.evaluate")
-        return args
-    return [*args, "--eval-freq", "-1"]
+    return args if given else [*args, "--eval-freq", "-1"]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

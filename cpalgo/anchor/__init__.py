@@ -1,5 +1,9 @@
-"""The anchor pipeline: how the shipped self-play policy (``zoo/anchor.zip``) is made and
-checked, in the order ``counterplay train-anchor`` runs it.
+"""The anchor pipeline: how a reward-conditioned self-play policy is made and checked.
+
+The shipped anchor ``zoo/anchor.zip`` is self-play PPO from scratch in resumable pieces
+(:mod:`~cpalgo.anchor.selfplay`, ``counterplay train-anchor --run-dir``), exported by
+:mod:`~cpalgo.anchor.export`. The teacher-imitation anchor ``zoo/anchor_imitation.zip``
+came from the other stages, in the order ``counterplay train-anchor`` runs them:
 
 * :mod:`~cpalgo.anchor.imitation`: DAgger warm start from the tracking expert
   (:func:`imitate_expert`).

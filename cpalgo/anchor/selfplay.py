@@ -861,6 +861,8 @@ class _Ranks:
 
     #: collectives wait this long for a rank: rank 0 alone builds or evaluates between them
     TIMEOUT = datetime.timedelta(minutes=30)
+    #: the closing barrier waits this long (rank 0 may still wait for its last evaluation)
+    CLOSING = datetime.timedelta(minutes=10)
 
     def __init__(self, workers: int) -> None:
         self.workers = int(workers)
@@ -894,8 +896,8 @@ class _Ranks:
         if dist.is_available() and dist.is_initialized():
             if not failed:
                 try:  # the ranks leave together, with no collective left in flight
-                    dist.barrier()
-                except RuntimeError:  # a rank that died after its last segment; its exit code names it
+                    dist.monitored_barrier(timeout=self.CLOSING)
+                except RuntimeError:  # a rank that died or hangs after its last segment: its exit code names it
                     pass
             dist.destroy_process_group()
         for process in self.processes:
@@ -933,7 +935,7 @@ def _rank_main(rank: int, workers: int, store: str, run_dir: str, settings: Anch
         else:
             model, state = None, {"segment": 0, "wall_s": 0.0, "rows": []}
         _run_segments(path, settings, recipe, model, state, womd, [], None, None, _silent, env_overrides)
-        dist.barrier()  # matches rank 0's in _Ranks.close
+        dist.monitored_barrier(timeout=_Ranks.CLOSING)  # matches rank 0's in _Ranks.close
         finished = True
     finally:  # an exception's traceback is printed by multiprocessing; rank 0 sees the closed connection
         dist.destroy_process_group()
@@ -941,8 +943,11 @@ def _rank_main(rank: int, workers: int, store: str, run_dir: str, settings: Anch
         # Gloo's threads can abort the interpreter's finalisation ("terminate called without an
         # active exception", exit code -6) after a finished piece; this rank writes nothing, so
         # it leaves without finalising
-        sys.stdout.flush()
-        sys.stderr.flush()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # a closed pipe loses only the rank's silent log
+                pass
         os._exit(0)
 
 

@@ -173,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
              "CounterPlay post-training of an anchor checkpoint with a zoo YAML recipe.")
     common(pt)
     pt.add_argument("--anchor", type=_existing_file, default=DEFAULT_ANCHOR, metavar="ZIP",
-                    help="anchor checkpoint (RecurrentPPO with the recipe's network)")
+                    help="anchor checkpoint (its network is read from it; the recipe must fit its env)")
     pt.add_argument("--config", type=_recipe_file, default=DEFAULT_POST_CONFIG, metavar="YAML",
                     help="zoo YAML recipe")
     post_options(pt, "folder for counterplay.zip (and its .searches.npz), summary.json and summary.md",

@@ -156,7 +156,8 @@ def run(argv: Sequence[str] | None = None) -> dict:
         "command": "python -m cpalgo.evaluate " + " ".join(argv if argv is not None else sys.argv[1:]),
         "pool": str(args.pool), "split": args.split, "n": args.n, "seed": args.seed,
         "deploy": deploy if isinstance(deploy, str) else list(deploy), "regimes": regimes,
-        "traffic_policy": args.traffic_policy, "bc_policy": args.bc_policy, "coplayers": args.coplayers,
+        "traffic_policy": args.traffic_policy or (str(ev.default_paths["traffic_policy"])
+                                                  if "traffic_policy" in ev.default_paths else None), "bc_policy": args.bc_policy, "coplayers": args.coplayers,
         "ppo_policy": args.ppo_policy or (str(ev.default_paths["ppo_policy"]) if "ppo_policy" in ev.default_paths
                                           else None),
         "dynamics": ev.dynamics,

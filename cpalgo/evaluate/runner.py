@@ -17,7 +17,7 @@ Regimes (:data:`REGIMES`, BehaviorBench's eight):
 ============== ===================================================================
 idm            co-players follow their logged routes with IDM
 selfplay       co-players driven by the separately trained self-play PPO policy
-               (``ppo_policy``, default ``zoo/ppo_traffic.zip``, unconditioned: it sees
+               (``ppo_policy``, default :data:`DEFAULT_PPO_PATHS` of the dynamics, unconditioned: it sees
                the normal profile); without one, by ``traffic_policy`` under conditions
                drawn from p_train at reset
 bc             co-players driven by the behaviour-cloning log-imitation model
@@ -615,7 +615,7 @@ class EvalConfig:
             ``vehicles`` (default, BehaviorBench's rule: every vehicle present at t0 except
             the ego, parked ones included) or ``controllable`` (vehicles present at t0 whose
             goal is >= 2 m away, PufferDrive's controlled agents; parked vehicles replay their
-            logs; the rule of the tables produced before December 2026). A parked vehicle has
+            logs; the rule of the earliest tables). A parked vehicle has
             no task, so the simulator never scores it as arrived (its start lies inside the
             2 m radius): under ``vehicles`` it stays in the scene and drives (or stays put)
             as its regime decides.
@@ -727,6 +727,11 @@ class Evaluator:
         needs_traffic = {"aggressive", "normal", "cautious", "mix"} & set(self.regimes)
         #: the default co-player files this evaluation loaded (argument -> path)
         self.default_paths: dict[str, Path] = {}
+        if self.dynamics_source is None and (needs_traffic or "selfplay" in self.regimes):
+            # nothing learned decides: the first shipped anchor does, whichever co-players follow
+            first = next(((d, p) for d, p in DEFAULT_TRAFFIC_PATHS.items() if p.is_file()), None)
+            if first is not None:
+                self.dynamics, self.dynamics_source = first[0], f"the default traffic_policy {first[1].name}"
         if needs_traffic and traffic_policy is None:
             traffic_policy = self._default_coplayer(DEFAULT_TRAFFIC_PATHS, "traffic_policy", needs_traffic)
         if "selfplay" in self.regimes and ppo_policy is None:

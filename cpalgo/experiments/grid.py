@@ -105,7 +105,7 @@ class EvalSettings:
             evaluated on every one; :attr:`task_sets`).
         traffic_policy, bc_policy: co-player checkpoints (None: the anchor; the shipped BC model).
         ppo_policy: the ``selfplay`` regime's PPO co-player checkpoint (None: the evaluator's
-            default ``zoo/ppo_traffic.zip`` when it acts in the evaluation's dynamics, else the
+            default, the shipped one of the evaluation's dynamics when there is one, else the
             traffic policy under p_train conditions, with a warning).
         coplayers: who follows the regime (``EvalConfig.coplayers``): ``vehicles`` (every
             vehicle present at t0, BehaviorBench) or ``controllable`` (the earlier rule).

@@ -255,6 +255,10 @@ def test_zoo_launcher_trains_counterplay_through_rl_zoo3(tmp_path, monkeypatch, 
     code = zoo.main(["train", "--algo", "counterplay", "--env", SELFPLAY_ENV_ID, "-f", str(recipe),
                      "--log-folder", str(logs), "-n", "128", "--seed", "2"])
     assert code == 0 and len(list(logs.glob("counterplay/*/*.zip"))) == 2
+    saved_args = [yaml.unsafe_load(p.read_text()) for p in logs.glob("counterplay/*/*/args.yml")]  # an OrderedDict
+    assert len(saved_args) == 2 and all(dict(a)["eval_freq"] == -1 for a in saved_args), saved_args
+    with pytest.raises(ValueError, match="--eval-freq 512"):  # argparse keeps the last one given
+        zoo._no_zoo_evaluation(["--eval-freq", "-1", "--eval-freq=512"])
     saved = list(logs.glob("counterplay/*/*.zip"))
     assert saved, list(logs.rglob("*"))
     from cpalgo import CounterPlay
@@ -471,7 +475,7 @@ def test_shipped_anchors_load_fit_the_size_limit_and_follow_their_style(name, ga
     from cpalgo.evaluate.runner import load_model, policy_dynamics
 
     path = shipped_path(name)
-    assert path.stat().st_size <= 10 * 2**20  # the anchor issue's limit
+    assert path.stat().st_size <= 10 * 2**20  # what a shipped checkpoint may weigh
     model = load_model(path, "anchor")
     assert policy_dynamics(model, "anchor") == ("classic" if name == "anchor.zip" else "jerk")
     if name == "anchor_fast.zip":

@@ -211,21 +211,33 @@ def test_jerk_ppo_coplayer_falls_back_under_classic(two, ckpts, tmp_path, capsys
     assert sum(line.startswith("warning:") for line in capsys.readouterr().err.splitlines()) == 1
 
 
-def test_default_coplayers_follow_the_dynamics(two, ckpts, capsys):
-    """Without a co-player given, each dynamics gets its own shipped anchor as traffic, and
-    classic gets no jerk PPO co-player (the selfplay regime falls back, with a note)."""
+def test_default_coplayers_follow_the_dynamics(two, ckpts, tmp_path, capsys, monkeypatch):
+    """Without a co-player given, each dynamics gets its own shipped anchor as traffic and
+    its own PPO co-player; without one for classic the selfplay regime falls back, with a note."""
     cfg = R.EvalConfig(progress=False)
     classic = R.Evaluator(two, ["normal", "selfplay"], policies=[ckpts["classic"]], config=cfg)
     assert classic.default_paths["traffic_policy"].name == "anchor.zip"
     assert R.policy_dynamics(classic.traffic_policy, "traffic_policy") == "classic"
-    if not R.DEFAULT_PPO_PATHS["classic"].is_file():
-        assert classic.ppo_policy is None and "no PPO co-player ships" in classic.notes["selfplay"]
     jerk = R.Evaluator(two, ["normal", "selfplay"], policies=[ckpts["jerk"]], config=cfg)
     assert jerk.default_paths["traffic_policy"].name == "anchor_imitation.zip"
     assert jerk.default_paths["ppo_policy"].name == "ppo_traffic.zip" and not jerk.notes
-    # nothing learned given: the first default (the self-play anchor) decides the dynamics
+    # nothing learned given: the self-play anchor decides the dynamics, whichever regimes
     assert R.Evaluator(two, ["normal"], config=cfg).dynamics == "classic"
+    only_ppo = R.Evaluator(two, ["selfplay", "idm"], config=cfg)
+    assert only_ppo.dynamics == "classic" and "anchor.zip" in only_ppo.dynamics_source
+    monkeypatch.setitem(R.DEFAULT_PPO_PATHS, "classic", tmp_path / "none.zip")
+    classic = R.Evaluator(two, ["selfplay"], policies=[ckpts["classic"]], config=cfg)
+    assert classic.ppo_policy is None and "no PPO co-player ships" in classic.notes["selfplay"]
+    assert classic.default_paths["traffic_policy"].name == "anchor.zip"
     capsys.readouterr()
+    # the command line records the files it took
+    from cpalgo.evaluate.__main__ import main
+
+    out = tmp_path / "res"
+    assert main(["--policy", ckpts["jerk"], "--regimes", "selfplay,normal", "--n", "1", "--no-progress",
+                 "--no-plots", "--out", str(out)]) == 0
+    run = json.loads((out / "summary.json").read_text())["run"]
+    assert run["ppo_policy"].endswith("ppo_traffic.zip") and run["traffic_policy"].endswith("anchor_imitation.zip")
 
 
 def test_held_out_outcomes_use_the_model_dynamics(ckpts):
