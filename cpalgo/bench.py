@@ -62,10 +62,15 @@ def _phase_timer(model: Any) -> dict[str, list[float]]:
     return times
 
 
-def _anchor_network(anchor: str | None) -> dict[str, Any]:
+def _anchor_path(anchor: str | None) -> str:
+    """``anchor``, or the shipped jerk anchor whose network the benchmarks use by default."""
     from cpalgo.recipes import shipped_path
 
-    path = anchor or str(shipped_path("anchor_imitation.zip"))
+    return anchor or str(shipped_path("anchor_imitation.zip"))
+
+
+def _anchor_network(anchor: str | None) -> dict[str, Any]:
+    path = _anchor_path(anchor)
     from stable_baselines3.common.save_util import load_from_zip_file
 
     data, _, _ = load_from_zip_file(path, device="cpu", load_data=True)
@@ -122,9 +127,7 @@ def run_learn_benchmark(worlds: int = 16, agents: int = 8, n_steps: int = 64, ge
         env = SelfPlayVecEnv(num_worlds=worlds, max_agents=agents, seed=seed, device=device)
         model = _make(name, env, common)
         if init_weights:
-            from cpalgo.recipes import shipped_path
-
-            model.set_parameters(anchor or str(shipped_path("anchor_imitation.zip")), exact_match=False, device=device)
+            model.set_parameters(_anchor_path(anchor), exact_match=False, device=device)
         models[name] = model
     writers = {name: _attach_memory_logger(m) for name, m in models.items()}
     n_envs = worlds * agents
@@ -362,10 +365,9 @@ def compare_learning(generations: int = 18, worlds: int = 32, agents: int = 8, n
     """
     from cpalgo.anchor.outcomes import selfplay_outcomes
     from cpalgo.cli import _held_out
-    from cpalgo.recipes import shipped_path
     from cpsim import SelfPlayVecEnv
 
-    path = anchor or str(shipped_path("anchor_imitation.zip"))
+    path = _anchor_path(anchor)
     common = dict(n_steps=n_steps, batch_size=batch_size, n_epochs=n_epochs, seed=seed, device="cpu",
                   learning_rate=learning_rate, policy_kwargs=_anchor_network(anchor))
     held_out = _held_out(tasks)

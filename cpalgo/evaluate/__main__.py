@@ -152,14 +152,14 @@ def run(argv: Sequence[str] | None = None) -> dict:
         ev.config = dataclasses.replace(ev.config, record=tuple(int(r) for r in rows))
     # ---- evaluate and write
     results = [ev.run(e) for e in egos]
+    defaults = {argument: str(path) for argument, path in ev.default_paths.items()}  # co-players not given
     extra = {
         "command": "python -m cpalgo.evaluate " + " ".join(argv if argv is not None else sys.argv[1:]),
         "pool": str(args.pool), "split": args.split, "n": args.n, "seed": args.seed,
         "deploy": deploy if isinstance(deploy, str) else list(deploy), "regimes": regimes,
-        "traffic_policy": args.traffic_policy or (str(ev.default_paths["traffic_policy"])
-                                                  if "traffic_policy" in ev.default_paths else None), "bc_policy": args.bc_policy, "coplayers": args.coplayers,
-        "ppo_policy": args.ppo_policy or (str(ev.default_paths["ppo_policy"]) if "ppo_policy" in ev.default_paths
-                                          else None),
+        "traffic_policy": args.traffic_policy or defaults.get("traffic_policy"),
+        "bc_policy": args.bc_policy, "coplayers": args.coplayers,
+        "ppo_policy": args.ppo_policy or defaults.get("ppo_policy"),
         "dynamics": ev.dynamics,
         "dynamics_from": {None: "default", "dynamics": "--dynamics"}.get(ev.dynamics_source, ev.dynamics_source),
         **({"notes": dict(ev.notes)} if ev.notes else {}),

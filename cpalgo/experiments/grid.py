@@ -52,7 +52,7 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
-from cpalgo.recipes import DEFAULT_POST_CONFIG
+from cpalgo.recipes import DEFAULT_POST_CONFIG, load_recipe
 
 __all__ = ["GridError", "GridConfig", "EvalSettings", "RunSpec", "load_grid", "resolve_grid_path", "ANCHOR"]
 
@@ -353,8 +353,6 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     budget = _whole(doc["budget"], where, "budget", 1)
     anchor = _checkpoint(_existing(doc["anchor"], where, "anchor", base, "checkpoint"), where, "anchor")
     recipe_path = _existing(doc.get("recipe", DEFAULT_POST_CONFIG), where, "recipe", base, "recipe")
-    from cpalgo.recipes import load_recipe
-
     try:
         recipe = load_recipe(recipe_path)
     except ValueError as exc:
