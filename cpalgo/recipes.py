@@ -39,6 +39,10 @@ ZOO_PREFIX = "zoo"
 #: the shipped files from any folder).
 DEFAULT_ANCHOR = "zoo/anchor.zip"
 DEFAULT_POST_CONFIG = "zoo/counterplay_selfplay.yml"
+#: ``train-anchor``'s recipes: a resumable self-play run (``--run-dir``) from scratch on
+#: BehaviorBench's recipe (the shipped anchor's), and the one-checkpoint teacher-imitation path.
+DEFAULT_SELFPLAY_CONFIG = "zoo/anchor_selfplay.yml"
+DEFAULT_ANCHOR_CONFIG = "zoo/anchor.yml"
 _SHIPPED = importlib.resources.files("cpalgo") / "shipped"
 # files extracted from a zipped install stay on disk until the process ends
 _EXTRACTED = contextlib.ExitStack()

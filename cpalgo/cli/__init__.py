@@ -32,7 +32,7 @@ are re-exported here under the names this module has always had.
 from __future__ import annotations
 
 from cpalgo.cli.anchor import cmd_curve, cmd_outcomes, cmd_train_anchor
-from cpalgo.cli.parser import DEFAULT_ANCHOR_CONFIG, TEACHERS, _version, build_parser, main
+from cpalgo.cli.parser import DEFAULT_ANCHOR_CONFIG, DEFAULT_SELFPLAY_CONFIG, TEACHERS, _version, build_parser, main
 from cpalgo.cli.post import cmd_post_train, cmd_searches
 from cpalgo.cli.scenarios import cmd_pool
 from cpalgo.common.checks import UsageError, check_out_path
@@ -45,7 +45,7 @@ from cpalgo.evaluate.held_out import HELD_OUT_SEED
 from cpalgo.evaluate.held_out import held_out_outcomes as _outcomes
 from cpalgo.evaluate.held_out import held_out_tasks as _held_out
 
-__all__ = ["main", "build_parser", "TEACHERS", "DEFAULT_ANCHOR", "DEFAULT_ANCHOR_CONFIG", "DEFAULT_POST_CONFIG",
+__all__ = ["main", "build_parser", "TEACHERS", "DEFAULT_ANCHOR", "DEFAULT_ANCHOR_CONFIG", "DEFAULT_SELFPLAY_CONFIG", "DEFAULT_POST_CONFIG",
            "HELD_OUT_SEED", "post_train", "check_algorithm_arguments", "check_out_path", "UsageError",
            "cmd_pool", "cmd_train_anchor", "cmd_curve", "cmd_outcomes", "cmd_post_train", "cmd_searches",
            "_held_out", "_outcomes", "_make_env", "_brief", "_write_searches", "_version"]

@@ -20,7 +20,7 @@ from cpalgo.common.checks import UsageError, brief, check_out_path, load_womd_op
 from cpalgo.common.checks import set_threads as _set_threads
 from cpalgo.common.recipe_setup import check_algorithm_arguments, make_env
 from cpalgo.evaluate.held_out import held_out_outcomes, held_out_tasks
-from cpalgo.recipes import load_recipe, resolve_path
+from cpalgo.recipes import DEFAULT_ANCHOR_CONFIG, DEFAULT_SELFPLAY_CONFIG, load_recipe, resolve_path
 
 __all__ = ["cmd_train_anchor", "cmd_curve", "cmd_export_anchor", "cmd_outcomes"]
 
@@ -57,6 +57,8 @@ def _train_anchor_run(args: argparse.Namespace) -> int:
             return 0
         if args.set:
             raise UsageError("--set: only with --resume (a new run takes its settings from --config)")
+        if args.config is None:
+            args.config = load_recipe(DEFAULT_SELFPLAY_CONFIG).path
         settings = AnchorRunSettings(
             recipe=args.config, seed=args.seed, timesteps=args.timesteps or load_recipe(args.config).n_timesteps,
             segment_timesteps=args.segment, pool_size=args.pool_size, womd_dir=args.add_womd,
@@ -140,7 +142,7 @@ def cmd_train_anchor(args: argparse.Namespace) -> int:
                          "(TeacherPPO)")
     if args.style_pair_focus and not args.teacher_style_pairs:
         raise UsageError("--style-pair-focus: needs --teacher-style-pairs K > 0")
-    recipe = load_recipe(args.config)
+    recipe = load_recipe(args.config or DEFAULT_ANCHOR_CONFIG)
     out = check_out_path(args.out, "--out", folder=False)
     if args.teacher_coef > 0:
         from cpalgo.anchor.teacher_ppo import TeacherPPO as algorithm_class

@@ -18,17 +18,15 @@ from cpalgo.common.checks import UsageError
 from cpalgo.common.checks import non_negative_int as _non_negative_int
 from cpalgo.common.checks import positive_int as _positive_int
 from cpalgo.counterplay.post_train import DEFAULT_ANCHOR, DEFAULT_POST_CONFIG
-from cpalgo.recipes import load_recipe, resolve_path
+from cpalgo.recipes import DEFAULT_ANCHOR_CONFIG, DEFAULT_SELFPLAY_CONFIG, load_recipe, resolve_path
 
-__all__ = ["TEACHERS", "DEFAULT_ANCHOR_CONFIG", "build_parser", "main"]
+__all__ = ["TEACHERS", "DEFAULT_ANCHOR_CONFIG", "DEFAULT_SELFPLAY_CONFIG", "build_parser", "main"]
 
 
 #: Teacher names of ``--teacher`` (cpsim.expert.EXPERTS; kept here so the parser imports no Warp).
 TEACHERS: tuple[str, ...] = ("tracking", "reactive", "reactive-v2", "reactive-v1", "reactive-v4", "reactive-v5",
                              "reactive-v6", "reactive-v7")
 
-#: The anchor recipe, spelled as the README spells it (it resolves to the shipped file).
-DEFAULT_ANCHOR_CONFIG = "zoo/anchor.yml"
 
 
 def _version() -> str:
@@ -185,8 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
              "Train the reward-conditioned self-play anchor (RecurrentPPO), optionally after a DAgger "
              "warm start that imitates an expert teacher (cpsim.expert).")
     common(ta)
-    ta.add_argument("--config", type=_recipe_file, default=DEFAULT_ANCHOR_CONFIG, metavar="YAML",
-                    help="zoo YAML recipe")
+    ta.add_argument("--config", type=_recipe_file, default=None, metavar="YAML",
+                    help=f"zoo YAML recipe (default: {DEFAULT_SELFPLAY_CONFIG} with --run-dir, the self-play "
+                         f"anchor's; {DEFAULT_ANCHOR_CONFIG} otherwise, the teacher-imitation anchor's)")
     ta.add_argument("--out", default="runs/anchor/anchor.zip", metavar="ZIP",
                     help="checkpoint to write (its report goes next to it as .json)")
     ta.add_argument("--timesteps", type=_positive_int, default=None, metavar="N",

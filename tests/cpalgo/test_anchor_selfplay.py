@@ -371,3 +371,26 @@ def test_the_cli_reports_a_bad_workers_count_as_a_usage_error(tmp_path: Path, fo
             cli.main(["train-anchor", *argv])
         assert exc.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_train_anchor_recipe_defaults_follow_the_mode(tmp_path: Path, monkeypatch):
+    """Without --config, a --run-dir run trains on the self-play anchor's recipe and the
+    one-checkpoint path on the teacher-imitation anchor's."""
+    from cpalgo import cli
+    from cpalgo.cli import anchor as anchor_cli
+    from cpalgo.recipes import load_recipe
+
+    seen: dict[str, object] = {}
+    monkeypatch.setattr(selfplay, "train_anchor_run", lambda run_dir, settings, **_: seen.update(settings=settings))
+    assert cli.main(["train-anchor", "--run-dir", str(tmp_path / "run")]) == 0
+    assert seen["settings"].recipe == load_recipe("zoo/anchor_selfplay.yml").path
+    assert seen["settings"].timesteps == 300_000_000   # the recipe's n_timesteps
+
+    def stop(algorithm_class, recipe):
+        seen["recipe"] = recipe.path
+        raise cli.UsageError("stop here")
+
+    monkeypatch.setattr(anchor_cli, "check_algorithm_arguments", stop)
+    with pytest.raises(SystemExit):
+        cli.main(["train-anchor", "--out", str(tmp_path / "a.zip")])
+    assert seen["recipe"] == load_recipe("zoo/anchor.yml").path
