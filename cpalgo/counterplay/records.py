@@ -623,10 +623,16 @@ def failure_anatomy(records: Sequence[SearchRecord], stuck_m: float = 5.0) -> di
         ``timeout_passed_goal`` and ``timeout_stuck``: counts among the timeouts;
         ``decisions_after_root_median`` / ``_mean``: decisions from the root to the end of
         the factual branch; ``candidates_completed``: share of the candidate branches whose
-        focal agent reached its goal (NaN when there are none).
+        focal agent reached its goal (NaN when there are none); ``roots_at_reset``: searches
+        whose root is the episode's first decision (the value rule found no earlier peak);
+        ``verified``: searches whose teacher passed verification, and
+        ``verified_factual_completed`` those among them whose factual branch completed the
+        task on the verification's fresh draws too (a failure that did not recur: the teacher
+        repairs sampling noise, not the policy).
     """
     out: dict[str, float] = {"searches": float(len(records)), "timeout": 0.0, "collision": 0.0, "offroad": 0.0,
-                             "goal": 0.0, "timeout_passed_goal": 0.0, "timeout_stuck": 0.0}
+                             "goal": 0.0, "timeout_passed_goal": 0.0, "timeout_stuck": 0.0,
+                             "roots_at_reset": 0.0, "verified": 0.0, "verified_factual_completed": 0.0}
     lengths: list[int] = []
     completed = candidates = 0
     for r in records:
@@ -642,6 +648,11 @@ def failure_anatomy(records: Sequence[SearchRecord], stuck_m: float = 5.0) -> di
             if b.kind == "candidate":
                 candidates += 1
                 completed += b.outcome == "goal"
+        out["roots_at_reset"] += float(r.root_step == 0)
+        if r.verified:
+            out["verified"] += 1.0
+            out["verified_factual_completed"] += float(any(
+                b.kind == "verify-factual" and b.outcome == "goal" for b in r.branches))
     out["decisions_after_root_median"] = float(np.median(lengths)) if lengths else float("nan")
     out["decisions_after_root_mean"] = float(np.mean(lengths)) if lengths else float("nan")
     out["candidates_completed"] = completed / candidates if candidates else float("nan")
@@ -649,14 +660,17 @@ def failure_anatomy(records: Sequence[SearchRecord], stuck_m: float = 5.0) -> di
 
 
 def format_anatomy(anatomy: dict[str, float]) -> str:
-    """:func:`failure_anatomy` as two plain-text lines."""
-    t = anatomy["timeout"]
+    """:func:`failure_anatomy` as three plain-text lines."""
+    t, v = anatomy["timeout"], anatomy["verified"]
     share = (lambda k: f"{100 * anatomy[k] / t:.0f}%") if t else (lambda k: "-")
+    recur = f"{100 * anatomy['verified_factual_completed'] / v:.0f}%" if v else "-"
     return (f"factual failures: {anatomy['timeout']:.0f} timeouts ({share('timeout_passed_goal')} passed inside the "
             f"goal radius too fast, {share('timeout_stuck')} stuck), {anatomy['collision']:.0f} collisions, "
             f"{anatomy['offroad']:.0f} off-road, {anatomy['goal']:.0f} completed on the rerun\n"
-            f"roots: median {anatomy['decisions_after_root_median']:.0f} decisions before the end; candidates "
-            f"completed: {100 * anatomy['candidates_completed']:.1f}%")
+            f"roots: median {anatomy['decisions_after_root_median']:.0f} decisions before the end, "
+            f"{anatomy['roots_at_reset']:.0f} at the episode's first decision; candidates "
+            f"completed: {100 * anatomy['candidates_completed']:.1f}%\n"
+            f"verified teachers: {v:.0f}, of which the factual branch completed on the fresh draws too: {recur}")
 
 
 def format_table(records: Sequence[SearchRecord]) -> str:

@@ -276,6 +276,20 @@ def test_failure_anatomy_counts_what_the_searched_failures_were(kept):
     assert a["decisions_after_root_median"] == np.median([r.factual.length for r in records])
     assert 0.0 <= a["candidates_completed"] <= 1.0
     assert "decisions before the end" in format_anatomy(a)
+    assert a["roots_at_reset"] == sum(r.root_step == 0 for r in records)
+    assert a["verified"] == sum(bool(r.verified) for r in records)
+    # a verified search whose fresh factual rerun completes counts as a failure that did not recur
+    r = _by_status(records, "verified")
+    verify = [dataclasses.replace(b, outcome="goal" if b.kind == "verify-factual" else b.outcome)
+              for b in r.branches]
+    assert any(b.kind == "verify-factual" for b in verify)
+    recurred = dataclasses.replace(r, branches=[dataclasses.replace(b, outcome="collision")
+                                                if b.kind == "verify-factual" else b for b in r.branches])
+    lucky = failure_anatomy([dataclasses.replace(r, branches=verify), recurred])
+    assert (lucky["verified"], lucky["verified_factual_completed"]) == (2, 1)
+    assert "the fresh draws too: 50%" in format_anatomy(lucky)
+    unverified = failure_anatomy([dataclasses.replace(r, branches=verify, verified=False)])
+    assert (unverified["verified"], unverified["verified_factual_completed"]) == (0, 0)
     # hand-made factual timeouts of one record: through the goal at 2 m spacing, then parked 30 m away
     r = next(r for r in records if r.factual.length >= 2)
     f, focal = r.factual, r.focal
@@ -309,9 +323,10 @@ def test_the_searches_command_lists_what_was_kept(kept, tmp_path, capsys):
     header = table[0].split()
     for column in ("scenario", "failure", "depth", "admissible", "teacher", "verified"):
         assert column in header
-    rows, anatomy = table[2:-2], table[-2:]
+    rows, anatomy = table[2:-3], table[-3:]
     assert len(rows) == len(records)
     assert anatomy[0].startswith("factual failures:") and anatomy[1].startswith("roots: median")
+    assert anatomy[2].startswith("verified teachers:")
     for k, (row, r) in enumerate(zip(rows, records)):
         cells = row.split()
         assert cells[0] == str(k) and r.scenario_id in cells
