@@ -213,11 +213,13 @@ def test_jerk_ppo_coplayer_falls_back_under_classic(two, ckpts, tmp_path, capsys
 
 def test_default_coplayers_follow_the_dynamics(two, ckpts, tmp_path, capsys, monkeypatch):
     """Without a co-player given, each dynamics gets its own shipped anchor as traffic and
-    its own PPO co-player; without one for classic the selfplay regime falls back, with a note."""
+    its own PPO co-player; without one the selfplay regime falls back, with a note."""
     cfg = R.EvalConfig(progress=False)
     classic = R.Evaluator(two, ["normal", "selfplay"], policies=[ckpts["classic"]], config=cfg)
     assert classic.default_paths["traffic_policy"].name == "anchor.zip"
     assert R.policy_dynamics(classic.traffic_policy, "traffic_policy") == "classic"
+    assert classic.default_paths["ppo_policy"].name == "ppo_traffic_classic.zip" and not classic.notes
+    assert R.policy_dynamics(classic.ppo_policy, "ppo_policy") == "classic"
     jerk = R.Evaluator(two, ["normal", "selfplay"], policies=[ckpts["jerk"]], config=cfg)
     assert jerk.default_paths["traffic_policy"].name == "anchor_imitation.zip"
     assert jerk.default_paths["ppo_policy"].name == "ppo_traffic.zip" and not jerk.notes
