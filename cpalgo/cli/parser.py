@@ -28,7 +28,6 @@ TEACHERS: tuple[str, ...] = ("tracking", "reactive", "reactive-v2", "reactive-v1
                              "reactive-v6", "reactive-v7")
 
 
-
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
