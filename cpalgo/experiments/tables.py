@@ -14,6 +14,11 @@ A table is written only where the grid has its runs:
   results.csv, not part of it).
 * **Table IV**, per split: score and at-fault collision rate under every deployment
   condition the grid evaluates.
+* **Style ceiling**, per split: of the task-regimes the anchor fails under the main
+  deployment, the share the anchor itself completes cleanly under each other condition the
+  grid evaluates it with, and the share PPO-Continue and CounterPlay repair; with the score
+  of the best condition per task-regime, the most that choosing one driving style per task
+  from the first decision could give.
 * **Table V**, per split: the single-style panels (``panel`` methods) against CounterPlay:
   score, at-fault collision, off-road and goal rates.
 * **Search statistics**: per CounterPlay-family method, failures, searches, admissible
@@ -331,9 +336,8 @@ def _repair_values(res: GridResults, method: str, dep: str, split: str) -> dict[
     out: dict[str, list[float]] = {name: [] for name, _ in REPAIR_CLASSES}
     for seed in res.seeds_of(method, dep):
         cols = res.evals[(method, seed, dep)]
-        for k in ("split", "regime", "scenario_id", "ego"):
-            if not np.array_equal(np.asarray(ref[k]), np.asarray(cols[k])):
-                return None  # not the same task-regimes: no repair analysis
+        if not _same_tasks(ref, cols):
+            return None  # not the same task-regimes: no repair analysis
         m = np.asarray(ref["split"]) == split
         ref_class = np.asarray(ref["outcome_class"])[m]
         ok = repaired(cols)[m]
@@ -392,6 +396,55 @@ def _table_iv(res: GridResults, lines: list[str]) -> None:
                         _cell(res.values(m, d, split, "mean", "at_fault_collision"), 100.0, 2)]
             rows.append(row)
         lines += [f"### {split.capitalize()} split", ""] + _table(header, rows)
+
+
+def _same_tasks(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
+    keys = ("split", "regime", "scenario_id", "ego") + (("task_set",) if "task_set" in a else ())
+    return all(k in b and np.array_equal(np.asarray(a[k]), np.asarray(b[k])) for k in keys)
+
+
+def _share_of(ok: np.ndarray, among: np.ndarray) -> str:
+    """Percent of the rows ``among`` marks that ``ok`` marks ('-' when there are none)."""
+    return f"{100 * ok[among].mean():.1f}" if among.any() else "-"
+
+
+def _style_ceiling(res: GridResults, lines: list[str]) -> None:
+    dep = res.main_deployment
+    ref = res.evals.get((ANCHOR, None, dep))
+    others = [d for d in res.grid.evaluation.deployments if d != dep and (ANCHOR, None, d) in res.evals
+              and ref is not None and _same_tasks(ref, res.evals[(ANCHOR, None, d)])]
+    if not others:
+        return
+    methods = [m for m in ("ppo-continue", "counterplay") if m in res.grid.methods and res.has(m, dep)]
+    lines += ["## Style ceiling: the anchor's failures another deployment condition repairs", "",
+              f"Over the task-regimes the anchor does not complete cleanly under {dep} deployment: the share "
+              "the anchor itself completes without any collision or off-road under each other condition "
+              "(same task-regimes, the condition held from the first decision) or under any of them, and the "
+              f"share each method repairs under {dep} deployment (mean ± std over seeds). Best condition per "
+              "task: the mean over task-regimes of the anchor's highest score over its conditions, what a "
+              "policy that picked one condition per task knowing the outcomes would score.", ""]
+    header = ["Split", "anchor failures", *(f"{d} %" for d in others), "any condition %",
+              *(f"{res.label(m)} %" for m in methods), f"score, {dep}", "score, best condition per task"]
+    rows = []
+    for split in res.splits:
+        m = np.asarray(ref["split"]) == split
+        failed = m & ~repaired(ref)
+        if not m.any():
+            continue
+        fixed = {d: repaired(res.evals[(ANCHOR, None, d)]) for d in others}
+        any_fixed = np.logical_or.reduce(list(fixed.values()))
+        n = int(failed.sum())
+
+        method_cells = []
+        for method in methods:
+            vals = [float(repaired(res.evals[(method, s, dep)])[failed].mean()) for s in res.seeds_of(method, dep)
+                    if n and _same_tasks(ref, res.evals[(method, s, dep)])]
+            method_cells.append(_cell(vals, 100.0))
+        best = np.max([np.asarray(res.evals[(ANCHOR, None, d)]["score"], np.float64)[m] for d in (dep, *others)], axis=0)
+        rows.append([split, f"{n} of {int(m.sum())}", *(_share_of(fixed[d], failed) for d in others),
+                     _share_of(any_fixed, failed),
+                     *method_cells, f"{np.asarray(ref['score'], np.float64)[m].mean():.1f}", f"{best.mean():.1f}"])
+    lines += _table(header, rows)
 
 
 def _table_v(res: GridResults, lines: list[str]) -> None:
@@ -548,7 +601,8 @@ def markdown_report(res: GridResults, extra: str = "") -> str:
         lines += [g.description.strip(), ""]
     if extra:
         lines += [extra.strip(), ""]
-    for part in (_table_i, _table_ii, _table_iii, _table_iv, _table_v, _search_table, _targets):
+    for part in (_table_i, _table_ii, _table_iii, _table_iv, _style_ceiling, _table_v, _search_table,
+                 _targets):
         part(res, lines)
     return "\n".join(lines) + "\n"
 

@@ -449,6 +449,37 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     assert res.values("cp-no-style", "normal", "interactive", "mean", "score") == [5.0]  # seed 1 has no mean
 
 
+def test_style_ceiling_counts_the_anchor_failures_another_condition_repairs(files, tmp_path):
+    """From written files: of the anchor's three normal-deployment failures, its aggressive
+    deployment completes one cleanly and its halfway another, which no method repairs."""
+    doc = grid_doc(files, methods=["ppo-continue", "counterplay"], seeds=[0, 1],
+                   evaluation={"tasks": 2, "splits": ["interactive"], "regimes": ["idm", "replay"],
+                               "deployments": {"normal": "all", "halfway": ["anchor"], "aggressive": ["anchor"]}})
+    grid = load_grid(doc)
+    out = tmp_path / "out"
+    sr = [("interactive", "idm")] * 2 + [("interactive", "replay")] * 2
+
+    def put(method, seed, dep, cols):
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **cols)
+        write_bytes_atomic(run_dir(out, RunSpec(method, seed)) / f"eval_{dep}.npz", buf.getvalue())
+
+    # normal: 0 times out, 1 collides at fault, 2 completes, 3 completes after a non-at-fault collision
+    put("anchor", None, "normal", _columns(sr, [0, 0, 1, 1], [0, 1, 0, 0], [0, 0, 0, 1], [0] * 4, [0, 0, 60, 0]))
+    # aggressive completes 0 and 3 (3 collides on the way: no repair) and breaks 2
+    put("anchor", None, "aggressive", _columns(sr, [1, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 1], [0] * 4, [90, 0, 0, 0]))
+    # halfway completes 1 cleanly
+    put("anchor", None, "halfway", _columns(sr, [0, 1, 1, 1], [0, 0, 0, 0], [0, 0, 0, 1], [0] * 4, [0, 70, 50, 0]))
+    for seed, goal in ((0, [1, 0, 1, 0]), (1, [1, 1, 1, 0])):  # counterplay repairs 1 or 2 of the 3
+        put("counterplay", seed, "normal", _columns(sr, goal, [0] * 4, [0] * 4, [0] * 4, [50 * g for g in goal]))
+        put("ppo-continue", seed, "normal", _columns(sr, [0, 0, 1, 1], [0] * 4, [0] * 4, [0] * 4, [0, 0, 60, 60]))
+    md = markdown_report(collect_results(out, grid))
+    assert "| Split | anchor failures | halfway % | aggressive % | any condition % | PPO-Continue % | CounterPlay % |" in md
+    # 3 failures (0, 1, 3): halfway repairs 1, aggressive 0, either 2; the best score per task
+    # is (90, 70, 60, 0) -> 55.0 against the normal deployment's 15.0
+    assert "| interactive | 3 of 4 | 33.3 | 33.3 | 66.7 | 33.3 ± 0.0 | 50.0 ± 23.6 | 15.0 | 55.0 |" in md
+
+
 def test_tables_pool_task_sets_of_the_runs_that_have_every_set(files, tmp_path):
     """From written files, no training: a run's task sets pool into one value per seed (mean
     over the sets), a run missing a set stays out of the tables but keeps its rows in
