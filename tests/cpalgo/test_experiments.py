@@ -225,6 +225,24 @@ def test_selfplay_paper_grids_hold_every_method_on_the_selfplay_recipe():
         assert dict(grid.evaluation.deployments) == dict(small.evaluation.deployments)
 
 
+def test_womd_grid_trains_and_evaluates_on_the_womd_folders(monkeypatch):
+    """zoo/experiments/womd_selfplay.yml: the self-play recipe and budget of paper_selfplay.yml,
+    post-training on the WOMD training scenes and evaluation on the validation scenes (paths
+    relative to the project root, as the README names the data folder)."""
+    root = Path(__file__).resolve().parents[2]
+    if not (root.parent / "shared" / "data" / "womd" / "train").is_dir():
+        pytest.skip("WOMD scenes not present (../shared/data/womd)")
+    monkeypatch.chdir(root)
+    grid = load_grid("zoo/experiments/womd_selfplay.yml")
+    paper = load_grid("zoo/experiments/paper_selfplay.yml")
+    assert grid.budget == paper.budget and grid.recipe == paper.recipe and grid.anchor == paper.anchor
+    assert {"ppo-continue", "counterplay"} <= set(grid.methods) and grid.seeds == (0, 1, 2)
+    assert Path(grid.env["womd_dir"]).resolve() == (root.parent / "shared/data/womd/train").resolve()
+    assert Path(grid.evaluation.pool).resolve() == (root.parent / "shared/data/womd/valid").resolve()
+    # the style ceiling needs the anchor under more than one condition
+    assert {"halfway", "aggressive"} <= set(grid.evaluation.deployments)
+
+
 def test_grid_ppo_policy_drives_the_selfplay_regime(files, tmp_path):
     """``evaluation.ppo_policy``: the selfplay regime's co-player (a classic one for a classic
     anchor, the shipped one being jerk); it reaches the fingerprint only when set, so the
