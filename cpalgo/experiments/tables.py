@@ -411,10 +411,14 @@ def _share_of(ok: np.ndarray, among: np.ndarray) -> str:
 def _style_ceiling(res: GridResults, lines: list[str]) -> None:
     dep = res.main_deployment
     ref = res.evals.get((ANCHOR, None, dep))
+    if ref is None:
+        return
     others = [d for d in res.grid.evaluation.deployments if d != dep and (ANCHOR, None, d) in res.evals
-              and ref is not None and _same_tasks(ref, res.evals[(ANCHOR, None, d)])]
+              and _same_tasks(ref, res.evals[(ANCHOR, None, d)])]
     if not others:
         return
+    fixed = {d: repaired(res.evals[(ANCHOR, None, d)]) for d in others}
+    any_fixed = np.logical_or.reduce(list(fixed.values()))
     methods = [m for m in ("ppo-continue", "counterplay") if m in res.grid.methods and res.has(m, dep)]
     lines += ["## Style ceiling: the anchor's failures another deployment condition repairs", "",
               f"Over the task-regimes the anchor does not complete cleanly under {dep} deployment: the share "
@@ -431,10 +435,7 @@ def _style_ceiling(res: GridResults, lines: list[str]) -> None:
         failed = m & ~repaired(ref)
         if not m.any():
             continue
-        fixed = {d: repaired(res.evals[(ANCHOR, None, d)]) for d in others}
-        any_fixed = np.logical_or.reduce(list(fixed.values()))
         n = int(failed.sum())
-
         method_cells = []
         for method in methods:
             vals = [float(repaired(res.evals[(method, s, dep)])[failed].mean()) for s in res.seeds_of(method, dep)

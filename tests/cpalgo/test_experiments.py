@@ -393,8 +393,14 @@ def _columns(split_regimes, goal, af, naf, off, score):
     return cols
 
 
+def _put_eval(out, method, seed, dep, cols):
+    """Write ``cols`` as the run's ``eval_<dep>.npz``, as the runner would."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **cols)
+    write_bytes_atomic(run_dir(out, RunSpec(method, seed)) / f"eval_{dep}.npz", buf.getvalue())
+
+
 def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp_path):
-    import io
 
     doc = grid_doc(files, methods=["ppo-continue", "counterplay", "cp-no-style"], seeds=[0, 1],
                    evaluation={"tasks": 2, "splits": ["interactive"], "regimes": ["idm", "replay"],
@@ -404,9 +410,7 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     sr = [("interactive", "idm")] * 2 + [("interactive", "replay")] * 2
 
     def put(method, seed, dep, cols):
-        buf = io.BytesIO()
-        np.savez_compressed(buf, **cols)
-        write_bytes_atomic(run_dir(out, RunSpec(method, seed)) / f"eval_{dep}.npz", buf.getvalue())
+        _put_eval(out, method, seed, dep, cols)
 
     # anchor: task-regimes 0, 1 time out, 2 completes, 3 collides at fault
     anchor = _columns(sr, [0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 60, 0])
@@ -478,9 +482,7 @@ def test_style_ceiling_counts_the_anchor_failures_another_condition_repairs(file
     sr = [("interactive", "idm")] * 2 + [("interactive", "replay")] * 2
 
     def put(method, seed, dep, cols):
-        buf = io.BytesIO()
-        np.savez_compressed(buf, **cols)
-        write_bytes_atomic(run_dir(out, RunSpec(method, seed)) / f"eval_{dep}.npz", buf.getvalue())
+        _put_eval(out, method, seed, dep, cols)
 
     # normal: 0 times out, 1 collides at fault, 2 completes, 3 completes after a non-at-fault collision
     put("anchor", None, "normal", _columns(sr, [0, 0, 1, 1], [0, 1, 0, 0], [0, 0, 0, 1], [0] * 4, [0, 0, 60, 0]))
