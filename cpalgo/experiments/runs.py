@@ -99,13 +99,20 @@ def _readable(path: Path) -> bool:
 
 def run_status(grid: GridConfig, out: str | os.PathLike, spec: RunSpec) -> str:
     """``done`` (trained and every evaluation written), ``evaluate`` (trained, evaluations
-    missing or unreadable), ``resume`` (a checkpoint to continue from) or ``new``."""
+    missing or unreadable), ``resume`` (a checkpoint to continue from) or ``new``.
+
+    A run whose ``train.json`` and evaluations are all there is done even without its
+    ``model.zip``: a clone that keeps only the small records (weights are not committed)
+    resumes a grid without training its finished runs again."""
     folder = run_dir(out, spec)
     evals_done = all(_readable(eval_path(grid, folder, d, t)) for t, d in _evaluations(grid, spec))
     if spec.method == ANCHOR:
         return "done" if evals_done else "evaluate"
-    if (folder / "train.json").is_file() and (folder / "model.zip").is_file():
-        return "done" if evals_done else "evaluate"
+    trained = (folder / "train.json").is_file()
+    if trained and evals_done:
+        return "done"
+    if trained and (folder / "model.zip").is_file():
+        return "evaluate"
     if (folder / "checkpoint.zip").is_file():
         return "resume"
     return "new"

@@ -154,6 +154,10 @@ def test_damaged_run_folders_are_redone_or_refused(files, tmp_path):
     np.savez_compressed(buf, score=np.zeros(2))
     write_bytes_atomic(folder / "eval_normal.npz", buf.getvalue())
     assert run_status(grid, out, spec) == "done"
+    (folder / "model.zip").unlink()  # a clone with the records only: nothing to redo
+    assert run_status(grid, out, spec) == "done"
+    (folder / "eval_normal.npz").unlink()  # ... but an evaluation needs the weights
+    assert run_status(grid, out, spec) == "new"
 
     (folder / "checkpoint.zip").write_bytes(b"PK truncated")
     (folder / "checkpoint.json").write_text('{"total": 100}')
