@@ -59,6 +59,9 @@ if TYPE_CHECKING:
 __all__ = ["SearchSettings", "SearchStats", "SearchDriver", "FAILURE_OUTCOMES", "outcome_code"]
 
 #: Outcomes of the episodes that start a search.
+#: Style counter name of teachers whose search kept the focal agent's own condition w0
+#: (``style_change=False``): they drive no style of the panel.
+OWN_CONDITION = "own"
 FAILURE_OUTCOMES: tuple[int, ...] = (int(Outcome.COLLISION), int(Outcome.OFFROAD), int(Outcome.TIMEOUT))
 _FAILURE_NAMES = {int(Outcome.COLLISION): "collision", int(Outcome.OFFROAD): "offroad", int(Outcome.TIMEOUT): "timeout"}
 
@@ -477,7 +480,8 @@ class SearchDriver:
             teacher = self._make_teacher(req, res, 1 + j)
             if teacher is not None:
                 self._teachers.append(teacher)
-                stats.profiles[self.settings.panel[j]] += 1
+                # without a style change every candidate drives the focal agent's own condition
+                stats.profiles[self.settings.panel[j] if self.settings.style_change else OWN_CONDITION] += 1
 
     def _add_branch(self, factual: int = 0, candidate: int = 0, verification: int = 0) -> None:
         self.budget.add_branch(factual=factual, candidate=candidate, verification=verification)

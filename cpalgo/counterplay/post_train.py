@@ -99,6 +99,7 @@ def post_train(anchor: str | os.PathLike = DEFAULT_ANCHOR, config: str | os.Path
 
 def _search_summary(totals: dict[str, float], panel: Sequence[str]) -> dict[str, Any]:
     """The search counters a reader wants, from CounterPlay's running totals."""
+    from cpalgo.counterplay.driver import OWN_CONDITION
     from cpalgo.counterplay.search import ADMISSION_VERDICTS
 
     keys = ("failures", "failures_collision", "failures_offroad", "failures_timeout", "searches",
@@ -108,6 +109,8 @@ def _search_summary(totals: dict[str, float], panel: Sequence[str]) -> dict[str,
     searches = out["searches"]
     out["mean_root_depth"] = round(totals.get("root_depth_sum", 0) / searches, 2) if searches else None
     out["winning_profiles"] = {name: int(totals.get(f"profile_{name}", 0)) for name in panel}
+    if totals.get(f"profile_{OWN_CONDITION}"):
+        out["winning_profiles"][OWN_CONDITION] = int(totals[f"profile_{OWN_CONDITION}"])
     out["retry_verdicts"] = {name: int(totals.get(f"retries_{name}", 0)) for name in ADMISSION_VERDICTS}
     out["search_cpu_s"] = round(float(totals.get("search_cpu_s", 0.0)), 2)
     return out

@@ -56,6 +56,7 @@ from cpalgo.evaluate import metrics as M
 from cpalgo.experiments.grid import ANCHOR, GridConfig
 from cpalgo.experiments.runs import eval_path, load_columns, run_dir
 from cpsim.atomic import write_bytes_atomic
+from cpsim.conditions import PANEL
 
 __all__ = ["GridResults", "collect_results", "results_csv", "markdown_report", "write_tables", "repaired",
            "RESULT_METRICS"]
@@ -525,6 +526,7 @@ def _search_table(res: GridResults, lines: list[str]) -> None:
                       "Factual completed: searches whose factual branch completed (% of searches).", ""]
             lines += _table(["Method", "incomplete %", "not better %", "harms other %", "admitted %",
                              "factual completed %"], verdict_rows)
+        _roots_and_styles(res, cp, st, lines)
     other = []
     for m in family:
         if m in cp:
@@ -544,6 +546,51 @@ def _search_table(res: GridResults, lines: list[str]) -> None:
     if walls:
         lines += ["Training wall time (min) and B_post reached per run:", ""]
         lines += _table(["Method", "wall min", "B_post"], walls)
+
+
+def _roots_and_styles(res: GridResults, cp: list[str], st: Any, lines: list[str]) -> None:
+    """Where the searched roots lie (decisions before the failure) and which driving style the
+    verified teachers drove, from the runs' ``root_depth_<d>`` and ``profile_<name>`` counters."""
+    def depth_share(t: dict, lo: int, hi: int) -> float:
+        depths = {int(k[len("root_depth_"):]): v for k, v in t["totals"]["search_totals"].items()
+                  if k.startswith("root_depth_") and k != "root_depth_sum"}
+        n = sum(depths.values())
+        return sum(v for d, v in depths.items() if lo <= d <= hi) / n if n else math.nan
+
+    def style_share(t: dict, name: str) -> float:
+        n = st(t, "teachers")
+        return st(t, f"profile_{name}") / n if n else math.nan
+
+    rows = []
+    for m in cp:
+        rows.append([res.label(m),
+                     _cell(_per_seed(res, m, lambda t: st(t, "failures_timeout") / st(t, "failures")), 100.0),
+                     _cell(_per_seed(res, m, lambda t: st(t, "root_depth_sum") / st(t, "searches")), decimals=1),
+                     _cell(_per_seed(res, m, lambda t: depth_share(t, 0, 9)), 100.0),
+                     _cell(_per_seed(res, m, lambda t: depth_share(t, 55, 10**9)), 100.0)]
+                    + [_cell(_per_seed(res, m, lambda t, p=p: style_share(t, p)), 100.0) for p in PANEL]
+                    + ["-"])
+    if not any(row[2] != "-" for row in rows):
+        return
+    for m, row in zip(cp, rows):  # teachers that kept w0 counted by panel slot are no style's
+        if not _changes_style(m):
+            teachers = sum(_per_seed(res, m, lambda t: st(t, "teachers")))
+            row[5:] = ["-"] * len(PANEL) + ["100.0" if teachers else "-"]
+    lines += ["Where the roots lie and which styles win: timeouts as a share of the failures; the searched "
+              "roots' depth in decisions before the failure (mean; share among the nearest roots, under 10; "
+              "share at the window's far edge, 55 or more); the driving style of the verified teachers "
+              "(% of teachers; own: the focal agent's own condition w0, kept without a style change).", ""]
+    lines += _table(["Method", "timeouts % of failures", "root depth", "nearest roots %", "far edge %"]
+                    + [f"{p} %" for p in PANEL] + ["own %"], rows)
+
+
+def _changes_style(method: str) -> bool:
+    from cpalgo.methods import get_method
+
+    try:
+        return bool(get_method(method).settings.get("style_change", True))
+    except ValueError:  # a method this install does not register
+        return True
 
 
 def _targets(res: GridResults, lines: list[str]) -> None:

@@ -15,6 +15,7 @@ from stable_baselines3.common.logger import configure  # noqa: E402
 
 import cpalgo.counterplay.driver as driver_module  # noqa: E402
 from cpalgo import CounterPlay  # noqa: E402
+from cpalgo.counterplay.driver import OWN_CONDITION  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 
 EPISODE = 40
@@ -240,6 +241,12 @@ def test_ablations_run_end_to_end(monkeypatch, ablation):
         depths = list(stats.root_depths)
         assert depths and all(abs(d - 10) <= 2 for d in depths)  # roots every 5 decisions
     assert stats.teachers > 0
+    # teachers are counted by the style they drove: none without a style change
+    assert sum(stats.profiles.values()) == stats.teachers
+    if ablation.get("style_change") is False:
+        assert set(stats.profiles) == {OWN_CONDITION}
+    else:
+        assert set(stats.profiles) <= set(model.panel)
     after = model.policy.state_dict()
     assert not all(th.equal(before[k], after[k]) for k in before)
 

@@ -432,10 +432,15 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     for seed, (incomplete, not_better, harms, admitted) in ((0, (6, 2, 1, 1)), (1, (8, 0, 0, 2))):
         totals = {"failures": 4, "searches": 2, "teachers_chosen": 1, "admissible": admitted, "verified": 1,
                   "teachers": 1, "factual_completed": seed, "retries_incomplete": incomplete,
-                  "retries_not_better": not_better, "retries_harms_other": harms, "retries_admitted": admitted}
-        write_bytes_atomic(run_dir(out, RunSpec("counterplay", seed)) / "train.json", json.dumps(
-            {"generations": 2, "b_post": 1000, "wall_s": 60.0, "budget_totals": {"branch_share": 0.25},
-             "totals": {"search_totals": totals}}).encode())
+                  "retries_not_better": not_better, "retries_harms_other": harms, "retries_admitted": admitted,
+                  # roots 5 and 60 (seed 0) or 30 and 60 (seed 1) decisions back; one teacher each
+                  "failures_timeout": 2 + seed, "root_depth_sum": 65 if seed == 0 else 90,
+                  "root_depth_5" if seed == 0 else "root_depth_30": 1, "root_depth_60": 1,
+                  "profile_aggressive" if seed == 0 else "profile_cautious": 1}
+        for method in ("counterplay", "cp-no-style"):
+            write_bytes_atomic(run_dir(out, RunSpec(method, seed)) / "train.json", json.dumps(
+                {"generations": 2, "b_post": 1000, "wall_s": 60.0, "budget_totals": {"branch_share": 0.25},
+                 "totals": {"search_totals": totals}}).encode())
     res = collect_results(out, grid)
     assert res.values("counterplay", "normal", "interactive", "mean", "score") == [80.0 * 3 / 4, 70.0 * 2 / 4]
     assert not repaired(res.evals[("ppo-continue", 0, "normal")])[2]  # a non-at-fault collision is no repair
@@ -453,6 +458,12 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     assert "| CounterPlay | 47.50 ± 17.68 | 12.50 ± 17.68 | 90.00 | 0.00 |" in md
     # which filter the retries failed: (60, 80) % incomplete, (20, 0) not better, (10, 0) harms, (10, 20) admitted
     assert "| CounterPlay | 70.0 ± 14.1 | 10.0 ± 14.1 | 5.0 ± 7.1 | 15.0 ± 7.1 | 25.0 ± 35.4 |" in md
+    # where the roots lie (depths 5, 60 / 30, 60: means 32.5 and 45; nearest 50 / 0 %, far edge 50 %)
+    # and which styles win (aggressive / cautious, one teacher per seed); without a style change
+    # the teachers drive the agent's own condition whatever panel slot found them
+    assert ("| CounterPlay | 62.5 ± 17.7 | 38.8 ± 8.8 | 25.0 ± 35.4 | 50.0 ± 0.0 | 50.0 ± 70.7 | 0.0 ± 0.0 "
+            "| 0.0 ± 0.0 | 0.0 ± 0.0 | 50.0 ± 70.7 | - |") in md
+    assert "| No change in driving style | 62.5 ± 17.7 | 38.8 ± 8.8 | 25.0 ± 35.4 | 50.0 ± 0.0 | - | - | - | - | - | 100.0 |" in md
     # targets: measured and judged
     assert "| CounterPlay − PPO-Continue, interactive: >= +5 points | +47.50" in md
     assert "timeouts repaired, interactive: CounterPlay >= 30%, PPO-Continue <= 10% | 75.0% vs 0.0% | yes |" in md
