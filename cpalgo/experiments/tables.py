@@ -613,12 +613,25 @@ def _targets(res: GridResults, lines: list[str]) -> None:
                                f"{a:.1f}% vs {b:.1f}%", a >= 30.0 and b <= 10.0))
     variants = [m for m in ["counterplay", *res.methods_in("ablation")] if res.has(m, dep)]
     if "counterplay" in variants and "cp-no-style" in variants:
-        split = res.splits[0]
-        scores = {m: _mean_std(res.values(m, dep, split, "mean", "score"))[0] for m in variants}
-        best, worst = max(scores, key=scores.get), min(scores, key=scores.get)
-        checks.append((f"Table II shape, {split}: full method highest, cp-no-style lowest of the variants",
-                       f"highest {best} ({scores[best]:.2f}), lowest {worst} ({scores[worst]:.2f})",
-                       best == "counterplay" and worst == "cp-no-style"))
+        for split in res.splits:
+            scores = {m: _mean_std(res.values(m, dep, split, "mean", "score"))[0] for m in variants}
+            best, worst = max(scores, key=scores.get), min(scores, key=scores.get)
+            checks.append((f"Table II shape, {split}: full method highest, cp-no-style lowest of the variants",
+                           f"highest {best} ({scores[best]:.2f}), lowest {worst} ({scores[worst]:.2f})",
+                           best == "counterplay" and worst == "cp-no-style"))
+    if res.has("counterplay", dep) and res.has("distill-aggressive", dep):
+        for split in res.splits:
+            (cs, _), (ds, _) = (_mean_std(res.values(m, dep, split, "mean", "score"))
+                                for m in ("counterplay", "distill-aggressive"))
+            (cf, _), (df, _) = (_mean_std(res.values(m, dep, split, "mean", "at_fault_collision"))
+                                for m in ("counterplay", "distill-aggressive"))
+            checks.append((f"Table IV, {split}: CounterPlay above the aggressive distillation control, "
+                           "at no higher at-fault collision rate",
+                           f"{cs:.2f} at {100 * cf:.2f}% vs {ds:.2f} at {100 * df:.2f}%", cs > ds and cf <= df))
+    teachers = _per_seed(res, "counterplay", lambda t: t["totals"]["search_totals"]["teachers"] / t["generations"])
+    if teachers:
+        per_gen = _mean_std(teachers)[0]
+        checks.append(("verified teachers per generation (CounterPlay) >= 10", f"{per_gen:.2f}", per_gen >= 10.0))
     if not checks:
         return
     lines += ["## Targets (the seed paper's effects)", ""]

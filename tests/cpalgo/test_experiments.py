@@ -406,7 +406,7 @@ def _put_eval(out, method, seed, dep, cols):
 
 def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp_path):
 
-    doc = grid_doc(files, methods=["ppo-continue", "counterplay", "cp-no-style"], seeds=[0, 1],
+    doc = grid_doc(files, methods=["ppo-continue", "counterplay", "cp-no-style", "distill-aggressive"], seeds=[0, 1],
                    evaluation={"tasks": 2, "splits": ["interactive"], "regimes": ["idm", "replay"],
                                "deployments": {"normal": "all", "aggressive": ["anchor", "counterplay"]}})
     grid = load_grid(doc)
@@ -428,6 +428,8 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     for seed in (0, 1):
         put("ppo-continue", seed, "normal", _columns(sr, [0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]))
         put("cp-no-style", seed, "normal", _columns(sr, [0, 1, 1, 0], [0] * 4, [0] * 4, [0] * 4, [0, 10, 10, 0]))
+        # the aggressive distillation control: one at-fault collision more than CounterPlay's seed 0
+        put("distill-aggressive", seed, "normal", _columns(sr, [1, 1, 0, 0], [0, 0, 1, 1], [0] * 4, [0] * 4, [50, 50, 0, 0]))
     # search counters of the two counterplay seeds: 2 searches x 5 retries each
     for seed, (incomplete, not_better, harms, admitted) in ((0, (6, 2, 1, 1)), (1, (8, 0, 0, 2))):
         totals = {"failures": 4, "searches": 2, "teachers_chosen": 1, "admissible": admitted, "verified": 1,
@@ -468,6 +470,9 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     assert "| CounterPlay − PPO-Continue, interactive: >= +5 points | +47.50" in md
     assert "timeouts repaired, interactive: CounterPlay >= 30%, PPO-Continue <= 10% | 75.0% vs 0.0% | yes |" in md
     assert "full method highest, cp-no-style lowest of the variants | highest counterplay (47.50), lowest cp-no-style" in md
+    # Table IV's target: CounterPlay 47.5 at (25 + 0) / 2 % at fault, the control 25.0 at 50 %
+    assert "at no higher at-fault collision rate | 47.50 at 12.50% vs 25.00 at 50.00% | yes |" in md
+    assert "| verified teachers per generation (CounterPlay) >= 10 | 0.50 | **no** |" in md  # 1 teacher in 2 generations
     assert "sample standard deviation (n − 1)" in md  # 57.5 ± 31.8 is the n − 1 std of 80 and 35
     csv_rows = results_csv(res).splitlines()
     assert csv_rows[0].startswith("method,seed,split,regime,deployment,n_tasks,score,completion_pct")
