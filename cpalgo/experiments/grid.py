@@ -8,6 +8,7 @@ A grid file is YAML (``zoo/experiments/paper_small.yml`` is the reference)::
     budget: 150000                      # B_post of every run (live agent transitions)
     seeds: [0, 1, 2]
     methods: all                        # or a list of registry names (counterplay methods)
+    order: seeds                        # start every method's seed 0 first; methods: a method's seeds together
     overrides: {learning_rate: cosine(3e-5)}   # algorithm arguments over the recipe's (all methods)
     env: {num_scenarios: 192}           # SelfPlayVecEnv arguments over the recipe's env_kwargs
     worlds: 32                          # training worlds (default: the recipe's n_envs / max_agents)
@@ -60,7 +61,11 @@ __all__ = ["GridError", "GridConfig", "EvalSettings", "RunSpec", "load_grid", "r
 ANCHOR = "anchor"
 _TOP_KEYS = ("name", "anchor", "recipe", "budget", "seeds", "methods", "overrides", "env", "worlds",
              "method_settings", "checkpoint_every", "torch_threads", "device", "resources", "evaluation",
-             "description")
+             "description", "order")
+#: How a grid queues its runs: ``seeds`` (every method's first seed, then the next seed) or
+#: ``methods`` (every seed of the first listed method, then the next method), so a long grid
+#: whose most wanted methods come first has their seeds complete early.
+RUN_ORDERS = ("seeds", "methods")
 _EVAL_KEYS = ("tasks", "splits", "regimes", "deployments", "pool", "pool_size", "seed", "traffic_policy",
               "bc_policy", "ppo_policy", "coplayers", "max_worlds", "max_agents", "sim_config")
 _RESOURCE_KEYS = ("num_cpus", "num_gpus", "memory")
@@ -179,10 +184,16 @@ class GridConfig:
     device: str = "cpu"
     resources: Mapping[str, float] = dataclasses.field(default_factory=lambda: {"num_cpus": 1, "num_gpus": 0})
     description: str = ""
+    order: str = "seeds"
 
     def runs(self) -> list[RunSpec]:
-        """The anchor's evaluations, then every (method, seed), seeds outermost."""
-        return [RunSpec(ANCHOR, None)] + [RunSpec(m, s) for s in self.seeds for m in self.methods]
+        """The anchor's evaluations, then every (method, seed), in :attr:`order`: seeds
+        outermost (``seeds``) or methods outermost (``methods``), each in the file's order."""
+        if self.order == "methods":
+            pairs = [(m, s) for m in self.methods for s in self.seeds]
+        else:
+            pairs = [(m, s) for s in self.seeds for m in self.methods]
+        return [RunSpec(ANCHOR, None)] + [RunSpec(m, s) for m, s in pairs]
 
     def settings_of(self, method: str) -> dict[str, Any]:
         """Algorithm arguments of ``method``'s runs on top of the recipe's: the grid's
@@ -365,6 +376,9 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
     seeds = tuple(_whole(s, where, "seeds", 0) for s in seeds_raw)
     if len(set(seeds)) != len(seeds):
         raise _fail(where, "seeds", "lists a seed twice")
+    order = str(doc.get("order", "seeds"))
+    if order not in RUN_ORDERS:
+        raise _fail(where, "order", f"expected one of {list(RUN_ORDERS)}, got {doc.get('order')!r}")
 
     overrides = _mapping(doc.get("overrides"), where, "overrides")
     from cpalgo.recipes import SCHEDULE_KEYS, parse_schedule
@@ -536,5 +550,5 @@ def load_grid(source: str | os.PathLike | Mapping[str, Any], *, base_dir: str | 
         path=where, name=name, anchor=anchor, recipe=recipe_path, budget=budget, seeds=seeds,
         methods=tuple(names), overrides=overrides, env=env, worlds=worlds, method_settings=method_settings,
         evaluation=evaluation, checkpoint_every=checkpoint_every, torch_threads=torch_threads, device=device,
-        resources=resources, description=str(doc.get("description", "")),
+        resources=resources, description=str(doc.get("description", "")), order=order,
     )

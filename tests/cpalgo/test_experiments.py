@@ -82,6 +82,7 @@ def grid_doc(files, **changes):
     ({"overrides": {"learning_rate": "sometimes(3)"}}, "overrides.learning_rate"),
     ({"env": {"num_wheels": 3}}, "env.num_wheels"),
     ({"seeds": [0, 0]}, "seeds: lists a seed twice"),
+    ({"order": "random"}, "order: expected one of ['seeds', 'methods'], got 'random'"),
     ({"evaluation": {"coplayers": "everyone"}}, "evaluation.coplayers: expected 'vehicles' or 'controllable'"),
     ({"evaluation": {"seed": [0, 1, 0]}}, "evaluation.seed: lists a task set twice"),
     ({"evaluation": {"seed": []}}, "evaluation.seed: expected a whole number or a non-empty list"),
@@ -226,7 +227,8 @@ def test_selfplay_paper_grids_hold_every_method_on_the_selfplay_recipe():
         assert grid.recipe.endswith("counterplay_selfplay.yml")
         assert grid.evaluation.tasks == 100 and len(grid.evaluation.regimes) == 8
         assert grid.evaluation.task_sets == (0, 1)  # 100 tasks per split on 2 task sets
-        assert dict(grid.evaluation.deployments) == dict(small.evaluation.deployments)
+        assert ({d: set(who) for d, who in grid.evaluation.deployments.items()}
+                == {d: set(who) for d, who in small.evaluation.deployments.items()})
 
 
 def test_womd_grid_trains_and_evaluates_on_the_womd_folders(monkeypatch):
@@ -294,6 +296,19 @@ def test_task_sets_parse_and_keep_the_fingerprint_of_the_first(files):
     with pytest.raises(GridError, match="evaluation.seed: several task sets need pool: procedural"):
         grid([0, 1], pool=files["folder"])
     assert grid([0, 1], pool=files["folder"], splits=["random"]).evaluation.task_sets == (0, 1)
+
+
+def test_run_order_queues_seeds_or_methods_first_and_leaves_the_fingerprint(files):
+    def keys(**change):
+        return [(r.method, r.seed) for r in load_grid(grid_doc(files, methods=["ppo-continue", "counterplay"],
+                                                               seeds=[0, 1], **change)).runs()]
+
+    assert keys() == [("anchor", None), ("ppo-continue", 0), ("counterplay", 0), ("ppo-continue", 1), ("counterplay", 1)]
+    assert keys(order="methods") == [("anchor", None), ("ppo-continue", 0), ("ppo-continue", 1),
+                                     ("counterplay", 0), ("counterplay", 1)]
+    by_methods = load_grid(grid_doc(files, order="methods"))
+    assert by_methods.run_fingerprint() == load_grid(grid_doc(files)).run_fingerprint()  # same folder resumes
+    assert by_methods.as_dict()["order"] == "methods"
 
 
 # ----------------------------------------------------------------------------- resume
