@@ -58,10 +58,10 @@ if TYPE_CHECKING:
 
 __all__ = ["SearchSettings", "SearchStats", "SearchDriver", "FAILURE_OUTCOMES", "outcome_code"]
 
-#: Outcomes of the episodes that start a search.
 #: Style counter name of teachers whose search kept the focal agent's own condition w0
 #: (``style_change=False``): they drive no style of the panel.
 OWN_CONDITION = "own"
+#: Outcomes of the episodes that start a search.
 FAILURE_OUTCOMES: tuple[int, ...] = (int(Outcome.COLLISION), int(Outcome.OFFROAD), int(Outcome.TIMEOUT))
 _FAILURE_NAMES = {int(Outcome.COLLISION): "collision", int(Outcome.OFFROAD): "offroad", int(Outcome.TIMEOUT): "timeout"}
 
