@@ -25,6 +25,9 @@ A table is written only where the grid has its runs:
   retries, verified share, teachers per generation and the branch share of B_post (plus
   the counters of the other methods: rewinds, opponent transitions, distillation teachers),
   and which filter each retry failed first (:func:`cpalgo.counterplay.search.admission_verdict`).
+* **Paired differences**, per split: each method's score minus PPO-Continue's on the same
+  task-regimes, with a 95 % bootstrap interval (:func:`paired_difference`) that resamples
+  the tasks (shared by both methods) and each method's seeds.
 * **Targets**: the seed paper's effects (CounterPlay >= 5 points above PPO-Continue, timeouts
   repaired, the ablations' order), each with its measured value and whether it holds.
 
@@ -59,7 +62,7 @@ from cpsim.atomic import write_bytes_atomic
 from cpsim.conditions import PANEL
 
 __all__ = ["GridResults", "collect_results", "results_csv", "markdown_report", "write_tables", "repaired",
-           "RESULT_METRICS"]
+           "paired_difference", "RESULT_METRICS"]
 
 #: results.csv metrics: (column, summarize key, scale)
 RESULT_METRICS: tuple[tuple[str, str, float], ...] = (
@@ -78,6 +81,55 @@ REPAIR_CLASSES: tuple[tuple[str, str], ...] = (
 )
 _SUMMARY_SOURCES = ("score", "goal", "at_fault_collision", "offroad", "non_at_fault_collision", "timeout",
                     "co_player_harm", "comfort", "lane_align", "lane_center")
+
+
+#: bootstrap draws behind each paired difference's interval (a fixed generator seed keeps
+#: ``tables.md`` reproducible)
+PAIRED_DRAWS = 4000
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray, cluster: np.ndarray, *, draws: int = PAIRED_DRAWS,
+                      level: float = 0.95, seed: int = 0) -> tuple[float, float, float]:
+    """Mean score of method A minus method B's on the same rows, with a bootstrap interval.
+
+    Args:
+        a: (seeds_a, n) one value per training seed of A and row (task-regime).
+        b: (seeds_b, n) B's values on the same n rows, in the same order.
+        cluster: (n,) the task each row belongs to (any integer ids): a task's rows (its
+            regimes) are drawn together, since they share the task's difficulty.
+        draws, level, seed: bootstrap draws, the interval's coverage, the generator's seed.
+
+    Each draw takes the tasks with replacement, the same for both methods (the comparison is
+    paired, so a task's difficulty cancels), and each method's seeds with replacement (the
+    training noise). With few seeds the seed part is underestimated (by (k-1)/k in variance
+    for k seeds), so read an interval that barely excludes 0 with care.
+
+    Returns:
+        (difference of the means, interval low, interval high).
+    """
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    cluster = np.asarray(cluster).ravel()
+    if a.ndim != 2 or b.ndim != 2 or not len(a) or not len(b):
+        raise ValueError(f"paired_difference: a and b must be (seeds, rows) arrays with a seed each, "
+                         f"got shapes {a.shape} and {b.shape}")
+    if a.shape[1] != b.shape[1] or cluster.shape != (a.shape[1],) or not a.shape[1]:
+        raise ValueError(f"paired_difference: a {a.shape}, b {b.shape} and cluster {cluster.shape} must "
+                         "share a nonzero number of rows")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"paired_difference: level must lie in (0, 1), got {level}")
+    ids = np.unique(cluster, return_inverse=True)[1].ravel()
+    k = int(ids.max()) + 1
+    count = np.bincount(ids, minlength=k).astype(np.float64)
+    sums_a = np.stack([np.bincount(ids, weights=row, minlength=k) for row in a])
+    sums_b = np.stack([np.bincount(ids, weights=row, minlength=k) for row in b])
+    rng = np.random.default_rng(seed)
+    weight = rng.multinomial(k, np.full(k, 1.0 / k), size=draws).astype(np.float64)  # (draws, k)
+    pick_a = rng.integers(0, len(a), (draws, len(a)))
+    pick_b = rng.integers(0, len(b), (draws, len(b)))
+    per_task = sums_a[pick_a].mean(1) - sums_b[pick_b].mean(1)  # (draws, k) summed differences
+    boot = (per_task * weight).sum(1) / (weight @ count)
+    lo, hi = np.quantile(boot, [(1.0 - level) / 2, (1.0 + level) / 2])
+    return float(a.mean() - b.mean()), float(lo), float(hi)
 
 
 def repaired(columns: dict[str, np.ndarray]) -> np.ndarray:
@@ -593,6 +645,46 @@ def _changes_style(method: str) -> bool:
         return True
 
 
+def _paired(res: GridResults, method: str, ref: str, dep: str, split: str) -> tuple[float, float, float] | None:
+    """:func:`paired_difference` of ``method`` minus ``ref`` on ``split`` (None when a run of
+    either was evaluated on other task-regimes than the others)."""
+    runs = [res.evals[(m, s, dep)] for m in (method, ref) for s in res.seeds_of(m, dep)]
+    if not runs or not all(_same_tasks(runs[0], cols) for cols in runs[1:]):
+        return None
+    first = runs[0]
+    rows = np.asarray(first["split"]) == split
+    if not rows.any():
+        return None
+    task = np.asarray(first["task"])[rows]
+    task_set = np.asarray(first["task_set"])[rows] if "task_set" in first else np.zeros_like(task)
+    cluster = np.unique(np.stack([task_set, task], 1), axis=0, return_inverse=True)[1].ravel()
+    n_a = len(res.seeds_of(method, dep))
+    scores = [np.asarray(cols["score"], np.float64)[rows] for cols in runs]
+    return paired_difference(np.stack(scores[:n_a]), np.stack(scores[n_a:]), cluster)
+
+
+def _paired_table(res: GridResults, lines: list[str]) -> None:
+    dep, ref = res.main_deployment, "ppo-continue"
+    if ref not in res.grid.methods or not res.has(ref, dep):
+        return
+    methods = [m for m in [ANCHOR, *res.grid.methods] if m != ref and res.has(m, dep)]
+    if not methods:
+        return
+    rows = []
+    for m in methods:
+        cells = []
+        for split in res.splits:
+            p = _paired(res, m, ref, dep, split)
+            cells.append("tasks differ" if p is None else f"{p[0]:+.2f} [{p[1]:+.2f}, {p[2]:+.2f}]")
+        rows.append([res.label(m), str(len(res.seeds_of(m, dep))), *cells])
+    lines += [f"## Paired differences from PPO-Continue ({dep} deployment, score)", "",
+              f"Mean score minus PPO-Continue's ({len(res.seeds_of(ref, dep))} seeds) on the same task-regimes "
+              f"[95 % bootstrap interval, {PAIRED_DRAWS} draws that resample the tasks, the same for both "
+              "methods, and each method's seeds]. An interval that excludes 0 separates the two beyond task "
+              "and seed noise; with three seeds the seed part is underestimated.", ""]
+    lines += _table(["Method", "Seeds", *(f"{s.capitalize()}" for s in res.splits)], rows)
+
+
 def _targets(res: GridResults, lines: list[str]) -> None:
     dep = res.main_deployment
     checks = []
@@ -601,9 +693,11 @@ def _targets(res: GridResults, lines: list[str]) -> None:
             cp = res.values("counterplay", dep, split, "mean", "score")
             pc = res.values("ppo-continue", dep, split, "mean", "score")
             d = _mean_std(cp)[0] - _mean_std(pc)[0]
+            p = _paired(res, "counterplay", "ppo-continue", dep, split)
+            interval = "" if p is None else f" [95 % interval {p[1]:+.2f}, {p[2]:+.2f}]"
             checks.append((f"CounterPlay − PPO-Continue, {split}: >= +5 points",
-                           f"{d:+.2f} (CounterPlay {_cell(cp, decimals=2)}, PPO-Continue {_cell(pc, decimals=2)})",
-                           d >= 5.0))
+                           f"{d:+.2f}{interval} (CounterPlay {_cell(cp, decimals=2)}, "
+                           f"PPO-Continue {_cell(pc, decimals=2)})", d >= 5.0))
         for split in res.splits:
             cpv = _repair_values(res, "counterplay", dep, split)
             pcv = _repair_values(res, "ppo-continue", dep, split)
@@ -663,7 +757,7 @@ def markdown_report(res: GridResults, extra: str = "") -> str:
     if extra:
         lines += [extra.strip(), ""]
     for part in (_table_i, _table_ii, _table_iii, _table_iv, _style_ceiling, _table_v, _search_table,
-                 _targets):
+                 _paired_table, _targets):
         part(res, lines)
     return "\n".join(lines) + "\n"
 

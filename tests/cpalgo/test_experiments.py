@@ -20,7 +20,7 @@ from cpalgo.evaluate.metrics import OutcomeClass  # noqa: E402
 from cpalgo.experiments.grid import ANCHOR, GridError, RunSpec, load_grid  # noqa: E402
 from cpalgo.experiments.runner import ray_available, run_experiment, runs_of  # noqa: E402
 from cpalgo.experiments.runs import run_dir  # noqa: E402
-from cpalgo.experiments.tables import collect_results, markdown_report, repaired, results_csv  # noqa: E402
+from cpalgo.experiments.tables import collect_results, markdown_report, paired_difference, repaired, results_csv  # noqa: E402
 from cpalgo.methods.base import BudgetedCounterPlay  # noqa: E402
 from cpsim import SelfPlayVecEnv  # noqa: E402
 from cpsim.atomic import write_bytes_atomic  # noqa: E402
@@ -488,6 +488,13 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     # Table IV's target: CounterPlay 47.5 at (25 + 0) / 2 % at fault, the control 25.0 at 50 %
     assert "at no higher at-fault collision rate | 47.50 at 12.50% vs 25.00 at 50.00% | yes |" in md
     assert "| verified teachers per generation (CounterPlay) >= 10 | 0.50 | **no** |" in md  # 1 teacher in 2 generations
+    # paired differences from PPO-Continue (0 everywhere): CounterPlay 47.5, the anchor 15 (one
+    # seed: only the tasks resampled); the target row carries the same interval
+    assert "| CounterPlay | 2 | +47.50 [" in md and "| Anchor | 1 | +15.00 [" in md
+    paired_row = next(line for line in md.splitlines() if line.startswith("| CounterPlay | 2 | +47.50 ["))
+    lo, hi = (float(x) for x in paired_row.split("[")[1].split("]")[0].split(","))
+    assert 0.0 <= lo < 47.5 < hi <= 80.0
+    assert f"| CounterPlay − PPO-Continue, interactive: >= +5 points | +47.50 [95 % interval {lo:+.2f}, {hi:+.2f}]" in md
     assert "sample standard deviation (n − 1)" in md  # 57.5 ± 31.8 is the n − 1 std of 80 and 35
     csv_rows = results_csv(res).splitlines()
     assert csv_rows[0].startswith("method,seed,split,regime,deployment,n_tasks,score,completion_pct")
@@ -503,7 +510,38 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     res = collect_results(out, grid)
     md = markdown_report(res)
     assert "| PPO-Continue (tasks differ from the anchor's: no repair analysis) | - |" in md
+    assert "| CounterPlay | 2 | tasks differ |" in md  # no pairing across different tasks
     assert res.values("cp-no-style", "normal", "interactive", "mean", "score") == [5.0]  # seed 1 has no mean
+
+
+def test_paired_difference_cancels_task_difficulty_and_resamples_whole_tasks():
+    rng = np.random.default_rng(1)
+    difficulty = np.repeat(rng.normal(70.0, 15.0, 50), 4)  # 50 tasks x 4 regimes, shared by both methods
+    cluster = np.repeat(np.arange(50), 4)
+    b = np.repeat(difficulty[None], 3, axis=0)
+    # a constant shift on every row: the pairing cancels the tasks, the interval is the point
+    d, lo, hi = paired_difference(b + 3.0, b, cluster)
+    assert d == pytest.approx(3.0) and lo == pytest.approx(3.0) and hi == pytest.approx(3.0)
+    # seed offsets of +-1 around a shift of 2: the interval holds 2, excludes 0 and is about the
+    # seeds' spread wide, far narrower than the tasks' spread (15 points) would make it unpaired
+    a = b + 2.0 + np.array([[-1.0], [0.0], [1.0]])
+    d, lo, hi = paired_difference(a, b, cluster)
+    assert d == pytest.approx(2.0) and 0.0 < lo < 2.0 < hi < 4.0
+    # a task's regimes are drawn together: repeating each row within its task changes nothing
+    d2, lo2, hi2 = paired_difference(np.repeat(a, 2, axis=1), np.repeat(b, 2, axis=1), np.repeat(cluster, 2))
+    assert (d2, lo2, hi2) == pytest.approx((d, lo, hi))
+    # a per-task gain shared by a task's regimes: drawing rows as independent tasks would make
+    # the interval narrower than the data support
+    gain = b + np.repeat(rng.normal(2.0, 3.0, 50), 4)[None]
+    _, lo3, hi3 = paired_difference(gain, b, cluster)
+    _, lo4, hi4 = paired_difference(gain, b, np.arange(200))
+    assert hi4 - lo4 < 0.6 * (hi3 - lo3)  # about 1/2: four regimes per task
+    with pytest.raises(ValueError, match="share a nonzero number of rows"):
+        paired_difference(a, b[:, :10], cluster)
+    with pytest.raises(ValueError, match=r"\(seeds, rows\)"):
+        paired_difference(a[0], b, cluster)
+    with pytest.raises(ValueError, match="level"):
+        paired_difference(a, b, cluster, level=1.5)
 
 
 def test_style_ceiling_counts_the_anchor_failures_another_condition_repairs(files, tmp_path):
