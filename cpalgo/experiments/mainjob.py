@@ -50,7 +50,7 @@ def main_job_grid(anchor: str, recipe: str, budget: int, seed: int = 0, eval_tas
 def main_job_summary(out: str | os.PathLike, grid: GridConfig) -> dict[str, Any]:
     """``summary.md`` / ``summary.json`` of the main job from the grid's files."""
     from cpalgo.experiments.runs import write_json_atomic
-    from cpalgo.experiments.tables import REPAIR_CLASSES, _cell, _repair_values, _table, collect_results
+    from cpalgo.experiments.tables import REPAIR_CLASSES, _cell, _paired, _repair_values, _table, collect_results
     from cpsim.atomic import write_bytes_atomic
 
     out = Path(out)
@@ -59,7 +59,8 @@ def main_job_summary(out: str | os.PathLike, grid: GridConfig) -> dict[str, Any]
     policies = [m for m in (ANCHOR, *METHODS) if res.has(m, dep)]
     doc: dict[str, Any] = {"anchor": grid.anchor, "recipe": grid.recipe, "budget": grid.budget,
                            "seed": grid.seeds[0], "tasks_per_split": grid.evaluation.tasks,
-                           "regimes": list(grid.evaluation.regimes), "policies": {}, "repair": {}, "training": {}}
+                           "regimes": list(grid.evaluation.regimes), "policies": {}, "difference": {}, "repair": {},
+                           "training": {}}
     lines = ["# Main job: PPO-Continue vs CounterPlay from the anchor", "",
              f"- anchor `{grid.anchor}`, recipe `{grid.recipe}`, B_post {grid.budget:,} live agent transitions "
              f"per method, seed {grid.seeds[0]}",
@@ -76,6 +77,17 @@ def main_job_summary(out: str | os.PathLike, grid: GridConfig) -> dict[str, Any]
             rows.append([res.label(m), split, _cell(vals["score"]), _cell(vals["completion"], 100.0),
                          _cell(vals["at_fault_collision"], 100.0), _cell(vals["timeout"], 100.0)])
     lines += ["Mean over the traffic regimes:", ""] + _table(header, rows)
+    if all(res.has(m, dep) for m in METHODS):
+        cells = []
+        for split in res.splits:
+            p = _paired(res, "counterplay", "ppo-continue", dep, split)
+            if p is not None:
+                doc["difference"][split] = {"mean": p[0], "low": p[1], "high": p[2]}
+                cells.append(f"{p[0]:+.2f} [{p[1]:+.2f}, {p[2]:+.2f}] ({split})")
+        if cells:
+            lines += ["CounterPlay − PPO-Continue on the same task-regimes: " + ", ".join(cells) + "; 95 % "
+                      "bootstrap interval over the tasks (one training seed each: seed noise is not in it, "
+                      "see the paper grids for that).", ""]
     ref = res.evals.get((ANCHOR, None, dep))
     if ref is not None:
         import numpy as np

@@ -667,3 +667,9 @@ def test_main_job_compares_both_methods_with_the_anchor_on_the_same_tasks(files,
     md = (out / "summary.md").read_text()
     assert "PPO-Continue" in md and "CounterPlay" in md and "Failure repair" in md
     assert "Retries by the first filter they failed: incomplete" in md
+    for split in ("interactive", "random"):  # the paired difference, with its interval around it
+        d = summary["difference"][split]
+        scores = {m: summary["policies"][m][split]["score"] for m in ("counterplay", "ppo-continue")}
+        assert d["mean"] == pytest.approx(scores["counterplay"] - scores["ppo-continue"])
+        assert d["low"] <= d["mean"] <= d["high"]
+        assert f"{d['mean']:+.2f} [{d['low']:+.2f}, {d['high']:+.2f}] ({split})" in md
