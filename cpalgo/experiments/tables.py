@@ -26,8 +26,9 @@ A table is written only where the grid has its runs:
   the counters of the other methods: rewinds, opponent transitions, distillation teachers),
   and which filter each retry failed first (:func:`cpalgo.counterplay.search.admission_verdict`).
 * **Paired differences**, per split: each method's score minus PPO-Continue's on the same
-  task-regimes, with a 95 % bootstrap interval (:func:`paired_difference`) that resamples
-  the tasks (shared by both methods) and each method's seeds.
+  task-regimes, and each ablation's and panel's minus CounterPlay's, with a 95 % bootstrap
+  interval (:func:`paired_difference`) that resamples the tasks (shared by both methods) and
+  each method's seeds.
 * **Targets**: the seed paper's effects (CounterPlay >= 5 points above PPO-Continue, timeouts
   repaired, the ablations' order), each with its measured value and whether it holds.
 
@@ -664,25 +665,31 @@ def _paired(res: GridResults, method: str, ref: str, dep: str, split: str) -> tu
 
 
 def _paired_table(res: GridResults, lines: list[str]) -> None:
-    dep, ref = res.main_deployment, "ppo-continue"
-    if ref not in res.grid.methods or not res.has(ref, dep):
-        return
-    methods = [m for m in [ANCHOR, *res.grid.methods] if m != ref and res.has(m, dep)]
-    if not methods:
-        return
-    rows = []
-    for m in methods:
-        cells = []
-        for split in res.splits:
-            p = _paired(res, m, ref, dep, split)
-            cells.append("tasks differ" if p is None else f"{p[0]:+.2f} [{p[1]:+.2f}, {p[2]:+.2f}]")
-        rows.append([res.label(m), str(len(res.seeds_of(m, dep))), *cells])
-    lines += [f"## Paired differences from PPO-Continue ({dep} deployment, score)", "",
-              f"Mean score minus PPO-Continue's ({len(res.seeds_of(ref, dep))} seeds) on the same task-regimes "
-              f"[95 % bootstrap interval, {PAIRED_DRAWS} draws that resample the tasks, the same for both "
-              "methods, and each method's seeds]. An interval that excludes 0 separates the two beyond task "
-              "and seed noise; with three seeds the seed part is underestimated.", ""]
-    lines += _table(["Method", "Seeds", *(f"{s.capitalize()}" for s in res.splits)], rows)
+    """Every method against PPO-Continue; the CounterPlay variants (ablations, single-style
+    panels) also against CounterPlay, the comparison Tables II and V make."""
+    dep = res.main_deployment
+    against = (("ppo-continue", [ANCHOR, *res.grid.methods]),
+               ("counterplay", res.methods_in("ablation", "panel")))
+    for ref, candidates in against:
+        if ref not in res.grid.methods or not res.has(ref, dep):
+            continue
+        methods = [m for m in candidates if m != ref and res.has(m, dep)]
+        if not methods:
+            continue
+        rows = []
+        for m in methods:
+            cells = []
+            for split in res.splits:
+                p = _paired(res, m, ref, dep, split)
+                cells.append("tasks differ" if p is None else f"{p[0]:+.2f} [{p[1]:+.2f}, {p[2]:+.2f}]")
+            rows.append([res.label(m), str(len(res.seeds_of(m, dep))), *cells])
+        name = res.label(ref)
+        lines += [f"## Paired differences from {name} ({dep} deployment, score)", "",
+                  f"Mean score minus {name}'s ({len(res.seeds_of(ref, dep))} seeds) on the same task-regimes "
+                  f"[95 % bootstrap interval, {PAIRED_DRAWS} draws that resample the tasks, the same for both "
+                  "methods, and each method's seeds]. An interval that excludes 0 separates the two beyond "
+                  "task and seed noise; with three seeds the seed part is underestimated.", ""]
+        lines += _table(["Method", "Seeds", *(f"{s.capitalize()}" for s in res.splits)], rows)
 
 
 def _targets(res: GridResults, lines: list[str]) -> None:

@@ -495,6 +495,9 @@ def test_tables_report_scores_repairs_and_targets_from_the_runs_files(files, tmp
     lo, hi = (float(x) for x in paired_row.split("[")[1].split("]")[0].split(","))
     assert 0.0 <= lo < 47.5 < hi <= 80.0
     assert f"| CounterPlay − PPO-Continue, interactive: >= +5 points | +47.50 [95 % interval {lo:+.2f}, {hi:+.2f}]" in md
+    # the ablations also against CounterPlay (5 - 47.5), below their row against PPO-Continue
+    against_cp = md.split("## Paired differences from CounterPlay")[1]
+    assert "| No change in driving style | 2 | -42.50 [" in against_cp and "| Anchor |" not in against_cp
     assert "sample standard deviation (n − 1)" in md  # 57.5 ± 31.8 is the n − 1 std of 80 and 35
     csv_rows = results_csv(res).splitlines()
     assert csv_rows[0].startswith("method,seed,split,regime,deployment,n_tasks,score,completion_pct")
